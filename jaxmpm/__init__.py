@@ -1,0 +1,1 @@
+"""jaxmpm: a differentiable Material Point Method in pure JAX."""

@@ -1,0 +1,121 @@
+"""The particle state pytree and the static background-grid specification."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+#: Number of padding cells added around the scene's domain on every side, so that the
+#: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
+#: outside it) stays inside the grid.
+GRID_PADDING = 3
+
+
+class Grid(eqx.Module):
+    """Static description of the dense background grid.
+
+    Node ``i`` (a D-tuple of ints) sits at ``origin + i * dx``. The grid covers the
+    scene's domain ``[lo, hi]`` plus ``GRID_PADDING`` cells on each side; nodes outside
+    the domain act as slip walls.
+
+    Attributes:
+        lo: domain lower corner, metres, length D.
+        hi: domain upper corner, metres, length D.
+        dx: grid spacing, metres.
+    """
+
+    lo: tuple[float, ...] = eqx.field(static=True)
+    hi: tuple[float, ...] = eqx.field(static=True)
+    dx: float = eqx.field(static=True)
+
+    @property
+    def dim(self) -> int:
+        return len(self.lo)
+
+    @property
+    def origin(self) -> tuple[float, ...]:
+        """World position of node (0, ..., 0)."""
+        return tuple(lo - GRID_PADDING * self.dx for lo in self.lo)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """Number of nodes per axis."""
+        return tuple(
+            int(math.ceil((hi - lo) / self.dx - 1e-9)) + 1 + 2 * GRID_PADDING
+            for lo, hi in zip(self.lo, self.hi)
+        )
+
+    @property
+    def num_nodes(self) -> int:
+        return int(np.prod(self.shape))
+
+    def node_positions(self) -> np.ndarray:
+        """All node positions as a NumPy array of shape ``(num_nodes, D)`` (C order)."""
+        axes = [o + self.dx * np.arange(n) for o, n in zip(self.origin, self.shape)]
+        mesh = np.meshgrid(*axes, indexing="ij")
+        return np.stack([m.reshape(-1) for m in mesh], axis=-1)
+
+
+class State(eqx.Module):
+    """Particle state of a simulation (a pytree; every field is an array leaf).
+
+    Attributes:
+        x: positions, ``(N, D)``, metres.
+        v: velocities, ``(N, D)``, m/s.
+        C: affine velocity field (APIC/MLS), ``(N, D, D)``, 1/s.
+        F: elastic deformation gradient, ``(N, D, D)``.
+        aux: one scalar of material internal state per particle, ``(N,)``
+            (the volume ratio J for Newtonian fluids, 0 where unused).
+        mass: particle masses, ``(N,)``, kg (kg/m in 2D).
+        vol0: initial particle volumes, ``(N,)``, m^3 (m^2 in 2D).
+        tag: per-collider side tags in {-1, 0, +1}, ``(N, K)`` int8 (K may be 0).
+        time: simulated time, scalar, seconds.
+    """
+
+    x: Float[Array, "N D"]
+    v: Float[Array, "N D"]
+    C: Float[Array, "N D D"]
+    F: Float[Array, "N D D"]
+    aux: Float[Array, " N"]
+    mass: Float[Array, " N"]
+    vol0: Float[Array, " N"]
+    tag: Int[Array, "N K"]
+    time: Float[Array, ""]
+
+    @property
+    def num_particles(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return self.x.shape[1]
+
+
+def make_state(
+    x: Float[Array, "N D"],
+    v: Float[Array, "N D"],
+    mass: Float[Array, " N"],
+    vol0: Float[Array, " N"],
+    aux: Float[Array, " N"] | None = None,
+    num_colliders: int = 0,
+) -> State:
+    """A state at rest in its reference configuration (``F = I``, ``C = 0``)."""
+    x = jnp.asarray(x)
+    n, d = x.shape
+    dtype = x.dtype
+    eye = jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))
+    return State(
+        x=x,
+        v=jnp.broadcast_to(jnp.asarray(v, dtype), (n, d)),
+        C=jnp.zeros((n, d, d), dtype),
+        F=eye,
+        aux=jnp.zeros((n,), dtype) if aux is None else jnp.asarray(aux, dtype),
+        mass=jnp.asarray(mass, dtype),
+        vol0=jnp.asarray(vol0, dtype),
+        tag=jnp.zeros((n, num_colliders), jnp.int8),
+        time=jnp.zeros((), dtype),
+    )
