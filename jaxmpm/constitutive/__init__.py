@@ -1,0 +1,11 @@
+"""Constitutive models: one abstract :class:`Material`, five final PAC-NeRF materials."""
+
+from .base import Material as Material
+from .base import lame_from_young as lame_from_young
+from .models import MATERIALS as MATERIALS
+from .models import Elastic as Elastic
+from .models import Newtonian as Newtonian
+from .models import Plasticine as Plasticine
+from .models import Sand as Sand
+from .models import Viscoplastic as Viscoplastic
+from .svd import svd as svd

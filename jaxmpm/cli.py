@@ -1,0 +1,227 @@
+"""The ``jaxmpm`` command (DESIGN §5.3). User errors print one line and exit with code 2."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import JaxmpmError
+
+EXIT_USER_ERROR = 2
+
+
+def _progress_bar(total: int, desc: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", disable=not sys.stderr.isatty(), leave=False)
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    from .observe import atomic_write
+
+    def write(tmp):
+        Path(tmp).write_text(json.dumps(payload, indent=2) + "\n")
+
+    atomic_write(path, write)
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+def cmd_simulate(args) -> int:
+    from .observe import Observation, save_observation
+    from .step import run_frames
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, dtype=_dtype(args))
+    model = scene.model
+    print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, "
+          f"{model.frames} frames x {model.substeps} substeps (dt = {model.dt:.3g} s)", file=sys.stderr)
+    with _progress_bar(model.frames - 1, "simulate") as bar:
+        traj = run_frames(model, scene.params, on_frame=lambda i: bar.update(1))
+    positions = np.asarray(traj.x)
+    obs = Observation(times=np.asarray(traj.times), positions=positions, point_ids="particles", scene=scene.to_json())
+    if args.views:
+        obs = _render_into(obs, scene, positions, args)
+    out = Path(args.out)
+    save_observation(out, obs)
+    print(f"wrote {out} ({len(obs.times)} frames, {positions.shape[1]} points)")
+    if args.video:
+        _write_particle_video(Path(args.video), positions, model, obs)
+        print(f"wrote {args.video}")
+    return 0
+
+
+def _render_into(obs, scene, positions, args):
+    try:
+        from .render import render_views
+    except ImportError as err:  # pragma: no cover - renderer is part of the package
+        raise JaxmpmError(f"rendering is unavailable: {err}") from None
+    if scene.model.dim != 3:
+        raise JaxmpmError("--views needs a 3D scene")
+    rendered = render_views(positions, scene_views=args.views, res=args.res, renderer=args.renderer, scene=scene)
+    obs.masks = rendered["masks"]
+    obs.images = rendered["images"]
+    obs.intrinsics = rendered["intrinsics"]
+    obs.cam_to_world = rendered["cam_to_world"]
+    obs.validate()
+    return obs
+
+
+def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None:
+    from .plots import particle_video
+
+    if obs.images is not None:
+        from .render import tile_views, write_video
+
+        write_video(path, tile_views(obs.images), fps=max(1, round(1 / model.frame_dt)))
+    else:
+        particle_video(path, positions, model)
+
+
+# --------------------------------------------------------------------------- fit
+
+
+def cmd_fit(args) -> int:
+    from .fit import fit
+    from .observe import load_observation
+    from .scene import load_scene
+
+    scene = load_scene(args.scene, dtype=_dtype(args))
+    obs = load_observation(args.observations)
+    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else _default_names(scene)
+    print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames)", file=sys.stderr)
+
+    def progress(i, loss):
+        print(f"  iteration {i:3d}  loss {loss:.4e} m^2", file=sys.stderr)
+
+    result = fit(scene.model, scene.params, obs, names, max_steps=args.max_steps, progress=progress)
+    payload = result.to_json()
+    _write_json(Path(args.out), payload)
+    print(_format_table(result))
+    print(result.message + f" ({result.seconds:.1f} s); wrote {args.out}")
+    return 0 if result.converged else 1
+
+
+def _default_names(scene) -> list[str]:
+    """The material parameters that PAC-NeRF fits for the first body's model."""
+    from .constitutive import MATERIALS
+
+    if len(scene.model.bodies) != 1:
+        raise JaxmpmError("this scene has several bodies: name the parameters with --params")
+    return list(MATERIALS[type(scene.model.bodies[0].material).name].required)
+
+
+def _format_table(result, truth: dict | None = None) -> str:
+    rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
+    for name, value in result.values.items():
+        row = (name, _fmt(result.initial.get(name)), _fmt(value), _fmt(result.std.get(name)))
+        if truth:
+            row += (_fmt(truth[name]), _error_text(name, value, truth[name]))
+        rows.append(row)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    v = np.asarray(v, float)
+    if v.ndim:
+        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+    return f"{float(v):.4g}"
+
+
+def _error_text(name, value, truth) -> str:
+    from .fit import LOG10_PARAMS, _leaf
+
+    value, truth = np.asarray(value, float), np.asarray(truth, float)
+    if _leaf(name) in LOG10_PARAMS:
+        return f"|dlog10| = {float(np.max(np.abs(np.log10(value) - np.log10(truth)))):.4f}"
+    return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
+
+
+# --------------------------------------------------------------------------- demo, bench
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    run_demo(Path(args.out), quick=args.quick)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from .bench import run_bench
+
+    return run_bench(args.what, args.rest)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def _dtype(args):
+    import jax
+    import jax.numpy as jnp
+
+    if getattr(args, "float64", False):
+        jax.config.update("jax_enable_x64", True)
+        return jnp.float64
+    return jnp.float32
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jaxmpm", description="Differentiable MPM in JAX: simulate, render, identify parameters.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="simulate a ground truth, identify its parameters, print the table")
+    p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    p.add_argument("--quick", action="store_true", help="a smaller, faster version of the demo")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("simulate", help="run a scene and write an observation file")
+    p.add_argument("scene", help="scene file (.toml or .json)")
+    p.add_argument("--out", default="observation.npz", help="observation file to write (.npz)")
+    p.add_argument("--views", type=int, default=0, help="render this many views (PAC-NeRF rig)")
+    p.add_argument("--res", type=int, default=64, help="rendered image size in pixels")
+    p.add_argument("--renderer", choices=("volume", "surfels"), default="volume")
+    p.add_argument("--video", default=None, help="also write a video (.mp4 or .gif)")
+    p.add_argument("--float64", action="store_true", help="simulate in float64")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("fit", help="identify parameters from an observation file")
+    p.add_argument("scene", help="scene file (.toml or .json) holding the initial guess")
+    p.add_argument("observations", help="observation file (.npz)")
+    p.add_argument("--params", default=None, help="comma-separated parameter names (default: the material's)")
+    p.add_argument("--out", default="fit.json", help="result file (default: fit.json)")
+    p.add_argument("--max-steps", type=int, default=40, help="maximum Levenberg-Marquardt iterations")
+    p.add_argument("--float64", action="store_true", help="fit in float64")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("bench", help="performance benchmarks")
+    p.add_argument("what", choices=("step",), help="which benchmark")
+    p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except JaxmpmError as err:
+        print(f"jaxmpm {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

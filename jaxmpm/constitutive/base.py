@@ -1,0 +1,135 @@
+"""The abstract material: a return map and a Kirchhoff stress."""
+
+from __future__ import annotations
+
+import abc
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..errors import SceneError
+
+Params = dict[str, Float[Array, ""]]
+
+#: Singular values are clamped to at least this before taking logs (PAC-NeRF).
+SIGMA_MIN = 0.05
+#: Safe-norm epsilon under square roots (PAC-NeRF uses sqrt(x·x + 1e-8)).
+NORM_EPS = 1e-8
+
+
+def safe_norm(x: Float[Array, "... D"], axis: int = -1, keepdims: bool = False) -> Float[Array, "..."]:
+    """``sqrt(x·x + 1e-8)``: finite value and gradient at ``x = 0``."""
+    return jnp.sqrt(jnp.sum(x * x, axis=axis, keepdims=keepdims) + NORM_EPS)
+
+
+def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:
+    """Determinant of a batch of 2x2 or 3x3 matrices in closed form (fuses on CPU)."""
+    if A.shape[-1] == 2:
+        return A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    return (
+        A[..., 0, 0] * (A[..., 1, 1] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 1])
+        - A[..., 0, 1] * (A[..., 1, 0] * A[..., 2, 2] - A[..., 1, 2] * A[..., 2, 0])
+        + A[..., 0, 2] * (A[..., 1, 0] * A[..., 2, 1] - A[..., 1, 1] * A[..., 2, 0])
+    )
+
+
+def lame_from_young(E, nu):
+    """Lamé parameters ``(mu, lam)`` from Young's modulus E (Pa) and Poisson ratio nu."""
+    mu = E / (2.0 * (1.0 + nu))
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return mu, lam
+
+
+class Range:
+    """An allowed open/closed interval for a material parameter, for validation."""
+
+    def __init__(self, lo=-math.inf, hi=math.inf, lo_open=True, hi_open=True, text=""):
+        self.lo, self.hi, self.lo_open, self.hi_open, self.text = lo, hi, lo_open, hi_open, text
+
+    def __contains__(self, value: float) -> bool:
+        above = value > self.lo if self.lo_open else value >= self.lo
+        below = value < self.hi if self.hi_open else value <= self.hi
+        return bool(above and below and math.isfinite(value))
+
+
+POSITIVE = Range(0.0, text="> 0")
+NON_NEGATIVE = Range(0.0, lo_open=False, text=">= 0")
+POISSON = Range(-1.0, 0.5, text="in (-1, 0.5)")
+ANGLE = Range(0.0, 90.0, text="in (0, 90) degrees")
+
+
+class Material(eqx.Module):
+    """A constitutive model. Concrete materials are final subclasses.
+
+    A material has no array fields: its parameters (in physical units) arrive in a
+    dict ``params`` at every call so that they can be differentiated, vmapped and fitted.
+
+    Class attributes:
+        name: the scene-file ``model`` string.
+        required: parameter names that a scene must give.
+        defaults: optional parameter names and their default values.
+        ranges: validity range of each parameter (checked when a scene is loaded).
+    """
+
+    name: ClassVar[str]
+    required: ClassVar[tuple[str, ...]]
+    defaults: ClassVar[dict[str, float]] = {}
+    ranges: ClassVar[dict[str, Range]] = {}
+
+    @classmethod
+    def parameter_names(cls) -> tuple[str, ...]:
+        return cls.required + tuple(k for k in cls.defaults if k not in cls.required)
+
+    @classmethod
+    def validate(cls, values: dict[str, float], where: str = "material") -> dict[str, float]:
+        """Check names and ranges of user-given parameters; return them with defaults filled."""
+        out = dict(cls.defaults)
+        for key, value in values.items():
+            if key not in cls.parameter_names():
+                raise SceneError(
+                    f"{where}: unknown parameter {key!r} for model {cls.name!r} "
+                    f"(expected {', '.join(cls.parameter_names())})"
+                )
+            try:
+                value = float(value)
+            except (TypeError, ValueError):
+                raise SceneError(f"{where}: parameter {key!r} must be a number, got {value!r}") from None
+            allowed = cls.ranges.get(key)
+            if allowed is not None and value not in allowed:
+                raise SceneError(f"{where}: {key} = {value} is out of range (must be {allowed.text})")
+            out[key] = value
+        for key in cls.required:
+            if key not in out:
+                raise SceneError(f"{where}: missing required parameter {key!r} for model {cls.name!r}")
+        return out
+
+    def init_aux(self, n: int, dtype) -> Float[Array, " N"]:
+        """Initial internal scalar per particle (default 0)."""
+        return jnp.zeros((n,), dtype)
+
+    @abc.abstractmethod
+    def return_map(
+        self,
+        F_trial: Float[Array, "N D D"],
+        C: Float[Array, "N D D"],
+        aux: Float[Array, " N"],
+        params: Params,
+        dt: float,
+    ) -> tuple[Float[Array, "N D D"], Float[Array, " N"]]:
+        """Project the trial deformation gradient ``(I + dt C) F`` back to the admissible set.
+
+        Returns the new ``F`` and the new internal scalar ``aux``.
+        """
+
+    @abc.abstractmethod
+    def kirchhoff(
+        self,
+        F: Float[Array, "N D D"],
+        C: Float[Array, "N D D"],
+        aux: Float[Array, " N"],
+        params: Params,
+    ) -> Float[Array, "N D D"]:
+        """Kirchhoff stress ``tau = P F^T`` (Pa·m^0, i.e. J times the Cauchy stress)."""

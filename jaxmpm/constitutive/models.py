@@ -1,0 +1,208 @@
+"""The five PAC-NeRF materials, with PAC-NeRF's exact conventions.
+
+Notation (D = 2 or 3): ``F = U diag(sigma) V^T`` with U, V rotations, ``sigma`` clamped
+to ``>= 0.05``; Hencky strain ``eps = log sigma``; deviatoric part
+``eps_hat = eps - (tr eps / D) 1``; ``||.||`` is the safe norm ``sqrt(x·x + 1e-8)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from .base import (
+    ANGLE,
+    NON_NEGATIVE,
+    POISSON,
+    POSITIVE,
+    SIGMA_MIN,
+    Material,
+    det,
+    lame_from_young,
+    safe_norm,
+)
+from .svd import svd
+
+_SQRT_2_3 = math.sqrt(2.0 / 3.0)
+
+
+def _hencky(F):
+    U, sigma, V = svd(F)
+    eps = jnp.log(jnp.maximum(sigma, SIGMA_MIN))
+    return U, eps, V
+
+
+def _from_hencky(U, eps, V):
+    return jnp.einsum("nij,nj,nkj->nik", U, jnp.exp(eps), V)
+
+
+def _hencky_kirchhoff(F, mu, lam):
+    """StVK in Hencky strain: ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
+    U, eps, _ = _hencky(F)
+    diag = 2.0 * mu * eps + lam * jnp.sum(eps, axis=-1, keepdims=True)
+    return jnp.einsum("nij,nj,nkj->nik", U, diag, U)
+
+
+def _deviatoric(eps):
+    return eps - jnp.mean(eps, axis=-1, keepdims=True)
+
+
+def _bulk_lame(mu, kappa, dim):
+    """``lam = kappa - 2 mu / D`` (PAC-NeRF stores lam = kappa - 2 mu / 3 in 3D)."""
+    return kappa - 2.0 * mu / dim
+
+
+def _viscoplastic_projection(F_trial, mu, yield_stress, eta, dt):
+    """Bingham return map of Yue et al. 2015 as implemented by PAC-NeRF.
+
+    ``s_tr = 2 mu eps_hat``, ``y = ||s_tr|| - sqrt(2/3) tau_Y``; where ``y > 0``:
+    ``||s_new|| = ||s_tr|| - y / (1 + eta / (2 mu_hat dt))`` with
+    ``mu_hat = mu sum(sigma^2) / D``; ``eps_new = s_new / (2 mu) + tr eps / D``.
+    ``eta = 0`` is the exact von Mises projection (plasticine).
+    """
+    U, eps, V = _hencky(F_trial)
+    dim = eps.shape[-1]
+    eps_hat = _deviatoric(eps)
+    s_norm = 2.0 * mu * safe_norm(eps_hat, keepdims=True)
+    excess = s_norm - _SQRT_2_3 * yield_stress
+    mu_hat = mu * jnp.sum(jnp.exp(2.0 * eps), axis=-1, keepdims=True) / dim
+    new_norm = s_norm - excess / (1.0 + eta / (2.0 * mu_hat * dt))
+    scale = jnp.where(excess > 0, new_norm / s_norm, 1.0)
+    eps_new = scale * eps_hat + jnp.mean(eps, axis=-1, keepdims=True)
+    return _from_hencky(U, eps_new, V)
+
+
+class Elastic(Material):
+    """Compressible neo-Hookean: ``tau = mu (F F^T - I) + lam log(J) I``; no plasticity.
+
+    Parameters: ``E`` (Pa), ``nu``.
+    """
+
+    name: ClassVar[str] = "elastic"
+    required: ClassVar[tuple[str, ...]] = ("E", "nu")
+    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON}
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        return F_trial, aux
+
+    def kirchhoff(self, F, C, aux, params):
+        mu, lam = lame_from_young(params["E"], params["nu"])
+        dim = F.shape[-1]
+        eye = jnp.eye(dim, dtype=F.dtype)
+        log_J = jnp.log(det(F))  # NaN when inverted: reported by the health checks
+        FFt = jnp.einsum("nij,nkj->nik", F, F)
+        return mu * (FFt - eye) + lam * log_J[:, None, None] * eye
+
+
+class Newtonian(Material):
+    """PAC-NeRF's J-only fluid: ``tau = kappa (J - J^-6) I + mu J sym(C)``.
+
+    Only the volume ratio J is evolved (``J <- (1 + dt tr C) J``, clamped ``>= 0.05``),
+    stored in ``aux``; ``F`` stays the identity. Note there is **no factor 2** on the
+    viscous term: PAC-NeRF's ``mu`` is twice the textbook dynamic viscosity.
+
+    Parameters: ``mu`` (Pa·s), ``kappa`` (Pa).
+    """
+
+    name: ClassVar[str] = "newtonian"
+    required: ClassVar[tuple[str, ...]] = ("mu", "kappa")
+    ranges: ClassVar = {"mu": NON_NEGATIVE, "kappa": POSITIVE}
+
+    def init_aux(self, n, dtype):
+        return jnp.ones((n,), dtype)
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        trace = jnp.trace(C, axis1=-2, axis2=-1)
+        J = jnp.maximum((1.0 + dt * trace) * aux, SIGMA_MIN)
+        eye = jnp.broadcast_to(jnp.eye(F_trial.shape[-1], dtype=F_trial.dtype), F_trial.shape)
+        return eye, J
+
+    def kirchhoff(self, F, C, aux, params):
+        J = aux[:, None, None]
+        eye = jnp.eye(F.shape[-1], dtype=F.dtype)
+        pressure_part = params["kappa"] * (J - J**-6) * eye
+        return pressure_part + params["mu"] * J * 0.5 * (C + jnp.swapaxes(C, -1, -2))
+
+
+class Viscoplastic(Material):
+    """Non-Newtonian Bingham fluid (Hencky StVK + the viscoplastic return map).
+
+    Elasticity ``tau = U diag(2 mu eps + lam tr eps) U^T`` with ``lam = kappa - 2 mu / D``;
+    yield at ``||s|| = sqrt(2/3) tau_Y`` with plastic viscosity ``eta``.
+
+    Parameters: ``mu`` (Pa), ``kappa`` (Pa), ``yield_stress`` (Pa), ``eta`` (Pa·s).
+    """
+
+    name: ClassVar[str] = "viscoplastic"
+    required: ClassVar[tuple[str, ...]] = ("mu", "kappa", "yield_stress", "eta")
+    ranges: ClassVar = {"mu": POSITIVE, "kappa": POSITIVE, "yield_stress": NON_NEGATIVE, "eta": NON_NEGATIVE}
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        F = _viscoplastic_projection(F_trial, params["mu"], params["yield_stress"], params["eta"], dt)
+        return F, aux
+
+    def kirchhoff(self, F, C, aux, params):
+        mu = params["mu"]
+        return _hencky_kirchhoff(F, mu, _bulk_lame(mu, params["kappa"], F.shape[-1]))
+
+
+class Plasticine(Material):
+    """von Mises plasticity: the viscoplastic model with ``eta = 0`` and E, nu elasticity.
+
+    Parameters: ``E`` (Pa), ``nu``, ``yield_stress`` (Pa).
+    """
+
+    name: ClassVar[str] = "plasticine"
+    required: ClassVar[tuple[str, ...]] = ("E", "nu", "yield_stress")
+    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON, "yield_stress": NON_NEGATIVE}
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        mu, _ = lame_from_young(params["E"], params["nu"])
+        F = _viscoplastic_projection(F_trial, mu, params["yield_stress"], 0.0, dt)
+        return F, aux
+
+    def kirchhoff(self, F, C, aux, params):
+        mu, lam = lame_from_young(params["E"], params["nu"])
+        return _hencky_kirchhoff(F, mu, lam)
+
+
+class Sand(Material):
+    """Drucker–Prager sand (Klar et al. 2016), cohesionless, as PAC-NeRF implements it.
+
+    ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``; if ``tr eps >= 0`` the particle is
+    projected to the cone tip (``eps = 0``); otherwise
+    ``dgamma = ||eps_hat|| + (D lam + 2 mu) / (2 mu) tr(eps) alpha`` and
+    ``eps <- eps - max(dgamma, 0) eps_hat / ||eps_hat||``.
+
+    Parameters: ``friction_angle`` (degrees), ``E`` (Pa, default 1e6), ``nu`` (default 0.3).
+    """
+
+    name: ClassVar[str] = "sand"
+    required: ClassVar[tuple[str, ...]] = ("friction_angle",)
+    defaults: ClassVar[dict[str, float]] = {"E": 1e6, "nu": 0.3}
+    ranges: ClassVar = {"friction_angle": ANGLE, "E": POSITIVE, "nu": POISSON}
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        mu, lam = lame_from_young(params["E"], params["nu"])
+        sin_phi = jnp.sin(jnp.deg2rad(params["friction_angle"]))
+        alpha = _SQRT_2_3 * 2.0 * sin_phi / (3.0 - sin_phi)
+        U, eps, V = _hencky(F_trial)
+        dim = eps.shape[-1]
+        trace = jnp.sum(eps, axis=-1, keepdims=True)
+        eps_hat = _deviatoric(eps)
+        eps_hat_norm = safe_norm(eps_hat, keepdims=True)
+        dgamma = eps_hat_norm + (dim * lam + 2.0 * mu) / (2.0 * mu) * trace * alpha
+        cone = eps - jnp.maximum(dgamma, 0.0) / eps_hat_norm * eps_hat
+        eps_new = jnp.where(trace >= 0, jnp.zeros_like(eps), cone)
+        return _from_hencky(U, eps_new, V), aux
+
+    def kirchhoff(self, F, C, aux, params):
+        mu, lam = lame_from_young(params["E"], params["nu"])
+        return _hencky_kirchhoff(F, mu, lam)
+
+
+MATERIALS: dict[str, type[Material]] = {
+    cls.name: cls for cls in (Elastic, Newtonian, Viscoplastic, Plasticine, Sand)
+}

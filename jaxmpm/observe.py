@@ -1,0 +1,175 @@
+"""Observation files (DESIGN §5.2, ``format = "jaxmpm.observation/1"``) and atomic writes."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ObservationError
+
+FORMAT = "jaxmpm.observation/1"
+
+
+@dataclass
+class Observation:
+    """Observed data of one sequence (NumPy arrays, SI units).
+
+    Attributes:
+        times: ``(T,)`` seconds since the scene's start.
+        positions: ``(T, N, D)`` tracked points, NaN where missing; or None.
+        point_ids: ``"particles"`` when point i is simulation particle i; else None.
+        masks: ``(V, T, H, W)`` uint8 silhouettes (0/255); or None.
+        images: ``(V, T, H, W, 3)`` uint8 RGB; or None.
+        intrinsics: ``(V, 3, 3)`` pinhole intrinsics (with masks/images).
+        cam_to_world: ``(V, 4, 4)`` camera poses, OpenCV axes (with masks/images).
+        probe_names: names of probe time series, e.g. ``("front_x",)``.
+        probe_times: ``(P, Tp)`` seconds.
+        probe_values: ``(P, Tp)`` SI units.
+        scene: the scene spec as JSON text (or None).
+    """
+
+    times: np.ndarray
+    positions: np.ndarray | None = None
+    point_ids: str | None = None
+    masks: np.ndarray | None = None
+    images: np.ndarray | None = None
+    intrinsics: np.ndarray | None = None
+    cam_to_world: np.ndarray | None = None
+    probe_names: tuple[str, ...] | None = None
+    probe_times: np.ndarray | None = None
+    probe_values: np.ndarray | None = None
+    scene: str | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.validate()
+
+    def validate(self, source: str = "observation") -> None:
+        """Check shapes and the presence rules of §5.2; raise ObservationError naming the key."""
+        t = np.asarray(self.times)
+        if t.ndim != 1 or len(t) == 0 or not np.all(np.isfinite(t)):
+            raise ObservationError(f"{source}: 'times' must be a non-empty 1-D array of finite seconds")
+        if np.any(np.diff(t) <= 0):
+            raise ObservationError(f"{source}: 'times' must be strictly increasing")
+        if all(a is None for a in (self.positions, self.masks, self.images, self.probe_names)):
+            raise ObservationError(f"{source}: needs at least one of 'positions', 'masks', 'images', 'probe_names'")
+        T = len(t)
+        if self.positions is not None:
+            p = np.asarray(self.positions)
+            if p.ndim != 3 or p.shape[0] != T or p.shape[2] not in (2, 3):
+                raise ObservationError(f"{source}: 'positions' must have shape (T={T}, N, D), got {p.shape}")
+            if np.all(np.isnan(p)):
+                raise ObservationError(f"{source}: 'positions' are all NaN")
+        if self.point_ids not in (None, "particles"):
+            raise ObservationError(f"{source}: 'point_ids' must be 'particles' or absent, got {self.point_ids!r}")
+        for key in ("masks", "images"):
+            arr = getattr(self, key)
+            if arr is None:
+                continue
+            arr = np.asarray(arr)
+            want = 4 if key == "masks" else 5
+            if arr.ndim != want or arr.shape[1] != T or (key == "images" and arr.shape[-1] != 3):
+                shape = "(V, T, H, W)" if key == "masks" else "(V, T, H, W, 3)"
+                raise ObservationError(f"{source}: '{key}' must have shape {shape} with T={T}, got {arr.shape}")
+            if arr.dtype != np.uint8:
+                raise ObservationError(f"{source}: '{key}' must be uint8, got {arr.dtype}")
+            if self.intrinsics is None or self.cam_to_world is None:
+                raise ObservationError(f"{source}: '{key}' need 'intrinsics' and 'cam_to_world'")
+            V = arr.shape[0]
+            if np.shape(self.intrinsics) != (V, 3, 3) or np.shape(self.cam_to_world) != (V, 4, 4):
+                raise ObservationError(
+                    f"{source}: 'intrinsics' must be (V={V}, 3, 3) and 'cam_to_world' (V={V}, 4, 4), got "
+                    f"{np.shape(self.intrinsics)} and {np.shape(self.cam_to_world)}"
+                )
+        if self.probe_names is not None:
+            P = len(self.probe_names)
+            pt, pv = np.asarray(self.probe_times), np.asarray(self.probe_values)
+            if pt.ndim != 2 or pt.shape[0] != P or pv.shape != pt.shape:
+                raise ObservationError(
+                    f"{source}: 'probe_times' and 'probe_values' must both be (P={P}, Tp), got {pt.shape} and {pv.shape}"
+                )
+
+    @property
+    def scene_spec(self) -> dict | None:
+        return None if self.scene is None else json.loads(self.scene)
+
+
+def atomic_write(path: str | Path, write) -> Path:
+    """Call ``write(tmp_path)`` then rename onto ``path``: a failure never clobbers ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def save_observation(path: str | Path, obs: Observation) -> Path:
+    """Write ``obs`` to an ``.npz`` file atomically."""
+    obs.validate()
+    arrays = {"format": np.array(FORMAT), "times": np.asarray(obs.times, float)}
+    for f in fields(obs):
+        value = getattr(obs, f.name)
+        if f.name in ("times",) or value is None:
+            continue
+        if f.name in ("point_ids", "scene"):
+            arrays[f.name] = np.array(value)
+        elif f.name == "probe_names":
+            arrays[f.name] = np.array(list(value), dtype=str)
+        else:
+            arrays[f.name] = np.asarray(value)
+
+    def write(tmp):
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    return atomic_write(path, write)
+
+
+def load_observation(path: str | Path) -> Observation:
+    """Read an observation file (``np.load(..., allow_pickle=False)``) and validate it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ObservationError(f"observation file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {k: data[k] for k in data.files}
+    except Exception as err:  # zip errors, pickled objects, truncated files
+        raise ObservationError(f"{path}: not a readable .npz observation file ({err})") from None
+    fmt = contents.pop("format", None)
+    if fmt is None or str(fmt) != FORMAT:
+        raise ObservationError(f"{path}: 'format' must be {FORMAT!r}, got {None if fmt is None else str(fmt)!r}")
+    if "times" not in contents:
+        raise ObservationError(f"{path}: missing required key 'times'")
+    known = {f.name for f in fields(Observation)}
+    unknown = set(contents) - known
+    if unknown:
+        raise ObservationError(f"{path}: unknown keys {sorted(unknown)}")
+    kwargs = dict(contents)
+    for key in ("point_ids", "scene"):
+        if key in kwargs:
+            kwargs[key] = str(kwargs[key])
+    if "probe_names" in kwargs:
+        kwargs["probe_names"] = tuple(str(s) for s in kwargs["probe_names"])
+    try:
+        obs = Observation.__new__(Observation)
+        for f in fields(Observation):
+            setattr(obs, f.name, kwargs.get(f.name))
+        obs.validate(str(path))
+    except ObservationError:
+        raise
+    except Exception as err:
+        raise ObservationError(f"{path}: malformed observation ({err})") from None
+    return obs

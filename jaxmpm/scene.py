@@ -1,0 +1,342 @@
+"""Scene specs (TOML or JSON, DESIGN §5.1) -> :class:`~jaxmpm.model.Model` and params.
+
+Every error names the offending key, file or value (:class:`~jaxmpm.errors.SceneError`).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .colliders import COLLIDER_TYPES, CONTACTS
+from .constitutive import MATERIALS
+from .errors import SceneError
+from .model import COLLISION_MODES, Body, Model, Params
+from .state import Grid
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+_TOP_REQUIRED = ("dim", "dx", "domain", "frames", "frame_dt")
+_TOP_OPTIONAL = ("gravity", "substeps", "dt", "collision", "bodies", "colliders")
+_BODY_SHAPES = {
+    "box": (("lo", "hi"), ()),
+    "sphere": (("center", "radius"), ()),
+    "mesh": (("path",), ("scale", "translate", "rotate")),
+    "points": (("path",), ()),
+}
+_BODY_COMMON = ("shape", "material", "ppc", "velocity", "name")
+_COLLIDER_COMMON = ("type", "name", "contact", "friction", "restitution", "velocity", "angular_velocity")
+
+
+def _check_keys(spec: dict, required, optional, where: str) -> None:
+    if not isinstance(spec, dict):
+        raise SceneError(f"{where}: expected a table/object, got {type(spec).__name__}")
+    for key in spec:
+        if key not in required and key not in optional:
+            raise SceneError(f"{where}: unknown key {key!r} (allowed: {', '.join(list(required) + list(optional))})")
+    for key in required:
+        if key not in spec:
+            raise SceneError(f"{where}: missing required key {key!r}")
+
+
+def _vector(value, dim: int, where: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SceneError(f"{where} must be a list of {dim} numbers, got {value!r}") from None
+    if arr.shape != (dim,) or not np.all(np.isfinite(arr)):
+        raise SceneError(f"{where} must be a list of {dim} finite numbers, got {value!r}")
+    return arr
+
+
+def _number(value, where: str, positive: bool = False, integer: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{where} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise SceneError(f"{where} must be finite, got {value!r}")
+    if positive and value <= 0:
+        raise SceneError(f"{where} must be > 0, got {value!r}")
+    if integer and int(value) != value:
+        raise SceneError(f"{where} must be an integer, got {value!r}")
+    return value
+
+
+def read_spec(path: str | Path) -> dict:
+    """Read a scene file (``.toml`` or ``.json``) into a dict."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    text = path.read_text()
+    try:
+        if path.suffix.lower() == ".toml":
+            return tomllib.loads(text)
+        if path.suffix.lower() == ".json":
+            return json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise SceneError(f"{path}: cannot parse: {err}") from None
+    raise SceneError(f"{path}: scene files must end in .toml or .json")
+
+
+# --------------------------------------------------------------------------- bodies
+
+
+def _lattice_spacing(dx: float, ppc: int, dim: int, where: str) -> float:
+    per_axis = round(ppc ** (1.0 / dim))
+    if per_axis < 1 or per_axis**dim != ppc:
+        raise SceneError(f"{where}.ppc = {ppc}: particles per cell must be a perfect {dim}th power (e.g. {2**dim})")
+    return dx / per_axis
+
+
+def _lattice(lo: np.ndarray, hi: np.ndarray, h: float) -> np.ndarray:
+    axes = [lo_d + h * (np.arange(max(int(math.floor((hi_d - lo_d) / h + 1e-9)), 0)) + 0.5) for lo_d, hi_d in zip(lo, hi)]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([m.reshape(-1) for m in mesh], axis=-1)
+
+
+def _rotation_matrix(degrees) -> np.ndarray:
+    rx, ry, rz = np.deg2rad(np.asarray(degrees, float))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def load_mesh(path: Path, where: str):
+    """Load a triangle mesh with trimesh, with a clear error on failure."""
+    import trimesh
+
+    if not path.is_file():
+        raise SceneError(f"{where}: mesh file not found: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as err:  # trimesh raises many types
+        raise SceneError(f"{where}: cannot read mesh {path}: {err}") from None
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise SceneError(f"{where}: mesh {path} has no faces")
+    return mesh
+
+
+def _sample_body(spec: dict, dim: int, dx: float, base_dir: Path, where: str) -> tuple[np.ndarray, float]:
+    shape = spec["shape"]
+    ppc = int(_number(spec.get("ppc", 2**dim), f"{where}.ppc", positive=True, integer=True))
+    h = _lattice_spacing(dx, ppc, dim, where)
+    if shape == "box":
+        lo, hi = _vector(spec["lo"], dim, f"{where}.lo"), _vector(spec["hi"], dim, f"{where}.hi")
+        if np.any(hi <= lo):
+            raise SceneError(f"{where}: box 'hi' must exceed 'lo' on every axis, got lo={lo.tolist()} hi={hi.tolist()}")
+        x = _lattice(lo, hi, h)
+    elif shape == "sphere":
+        center = _vector(spec["center"], dim, f"{where}.center")
+        radius = _number(spec["radius"], f"{where}.radius", positive=True)
+        x = _lattice(center - radius, center + radius, h)
+        x = x[np.sum((x - center) ** 2, axis=-1) <= radius**2]
+    elif shape == "mesh":
+        if dim != 3:
+            raise SceneError(f"{where}: shape 'mesh' needs dim = 3")
+        mesh = load_mesh(base_dir / spec["path"], where)
+        mesh = mesh.copy()
+        mesh.apply_scale(_number(spec.get("scale", 1.0), f"{where}.scale", positive=True))
+        if "rotate" in spec:
+            rot = np.eye(4)
+            rot[:3, :3] = _rotation_matrix(_vector(spec["rotate"], 3, f"{where}.rotate"))
+            mesh.apply_transform(rot)
+        if "translate" in spec:
+            mesh.apply_translation(_vector(spec["translate"], 3, f"{where}.translate"))
+        if not mesh.is_watertight:
+            raise SceneError(f"{where}: mesh {spec['path']} is not watertight, so its inside is undefined")
+        x = _lattice(mesh.bounds[0], mesh.bounds[1], h)
+        x = x[mesh.contains(x)] if len(x) else x
+    elif shape == "points":
+        path = base_dir / spec["path"]
+        try:
+            x = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise SceneError(f"{where}: cannot read points file {path}: {err}") from None
+        if x.ndim != 2 or x.shape[1] != dim or not np.all(np.isfinite(x)):
+            raise SceneError(f"{where}: points file {path} must hold a finite (N, {dim}) array, got {x.shape}")
+    else:  # checked by the caller
+        raise AssertionError(shape)
+    return np.asarray(x, float), h**dim
+
+
+@dataclass
+class Scene:
+    """A loaded scene: the normalised spec, the model and the default parameters.
+
+    Attributes:
+        spec: the scene spec as a dict (what ``to_json`` writes).
+        model: the static :class:`~jaxmpm.model.Model`.
+        params: the parameter pytree built from the spec's values.
+        base_dir: folder that relative paths resolve against.
+    """
+
+    spec: dict
+    model: Model
+    params: Params
+    base_dir: Path
+
+    def to_json(self) -> str:
+        return json.dumps(self.spec, sort_keys=True)
+
+    @property
+    def body_names(self) -> tuple[str, ...]:
+        return tuple(b.name for b in self.model.bodies)
+
+    @property
+    def collider_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.model.colliders)
+
+
+def load_scene(source: str | Path | dict, base_dir: str | Path | None = None, dtype=jnp.float32) -> Scene:
+    """Load a scene from a file path or a spec dict.
+
+    Arguments:
+        source: path to a ``.toml``/``.json`` file, or the spec as a dict.
+        base_dir: folder for relative paths (default: the file's folder, or the cwd).
+        dtype: float dtype of the model and params (``jnp.float32`` or ``jnp.float64``;
+            float64 requires ``jax.config.update("jax_enable_x64", True)``).
+    """
+    if isinstance(source, dict):
+        spec = copy.deepcopy(source)
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+    else:
+        spec = read_spec(source)
+        base = Path(base_dir) if base_dir is not None else Path(source).resolve().parent
+    return _build(spec, base, dtype)
+
+
+def _build(spec: dict, base_dir: Path, dtype) -> Scene:
+    _check_keys(spec, _TOP_REQUIRED, _TOP_OPTIONAL, "scene")
+    dim = spec["dim"]
+    if dim not in (2, 3) or isinstance(dim, bool):
+        raise SceneError(f"scene: 'dim' must be 2 or 3, got {dim!r}")
+    dx = _number(spec["dx"], "scene: 'dx'", positive=True)
+    _check_keys(spec["domain"], ("lo", "hi"), (), "scene.domain")
+    lo = _vector(spec["domain"]["lo"], dim, "scene: 'domain.lo'")
+    hi = _vector(spec["domain"]["hi"], dim, "scene: 'domain.hi'")
+    if np.any(hi - lo < 2 * dx):
+        raise SceneError(f"scene: 'domain' must span at least 2 dx per axis, got lo={lo.tolist()} hi={hi.tolist()}")
+    frames = int(_number(spec["frames"], "scene: 'frames'", positive=True, integer=True))
+    if frames < 2:
+        raise SceneError(f"scene: 'frames' must be >= 2 (frame 0 is the initial state), got {frames}")
+    frame_dt = _number(spec["frame_dt"], "scene: 'frame_dt'", positive=True)
+    if "substeps" in spec:
+        substeps = int(_number(spec["substeps"], "scene: 'substeps'", positive=True, integer=True))
+    elif "dt" in spec:
+        dt = _number(spec["dt"], "scene: 'dt'", positive=True)
+        substeps = max(1, math.ceil(frame_dt / dt - 1e-9))
+    else:
+        raise SceneError("scene: missing required key 'substeps' (or 'dt')")
+    gravity = _vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
+    collision = spec.get("collision", "cpic")
+    if collision not in COLLISION_MODES:
+        raise SceneError(f"scene: 'collision' must be one of {COLLISION_MODES}, got {collision!r}")
+    grid = Grid(lo=tuple(lo.tolist()), hi=tuple(hi.tolist()), dx=float(dx))
+
+    bodies, body_params = [], []
+    body_specs = spec.get("bodies", [])
+    if not isinstance(body_specs, list) or not body_specs:
+        raise SceneError("scene: 'bodies' must be a non-empty list of [[bodies]] tables")
+    for k, bspec in enumerate(body_specs):
+        body, bparams = _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype)
+        bodies.append(body)
+        body_params.append(bparams)
+    names = [b.name for b in bodies]
+    if len(set(names)) != len(names):
+        raise SceneError(f"scene: body names must be unique, got {names}")
+
+    colliders, collider_params = [], []
+    for k, cspec in enumerate(spec.get("colliders", [])):
+        collider, cparams = _build_collider(cspec, k, dim, base_dir, dtype)
+        colliders.append(collider)
+        collider_params.append(cparams)
+
+    model = Model(
+        grid=grid,
+        bodies=tuple(bodies),
+        colliders=tuple(colliders),
+        frame_dt=float(frame_dt),
+        substeps=substeps,
+        frames=frames,
+        collision=collision,
+    )
+    params = {
+        "gravity": jnp.asarray(gravity, dtype),
+        "bodies": tuple(body_params),
+        "colliders": tuple(collider_params),
+    }
+    return Scene(spec=spec, model=model, params=params, base_dir=base_dir)
+
+
+def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
+    where = f"bodies[{k}]"
+    if not isinstance(bspec, dict):
+        raise SceneError(f"{where}: expected a table/object")
+    shape = bspec.get("shape")
+    if shape not in _BODY_SHAPES:
+        raise SceneError(f"{where}.shape must be one of {tuple(_BODY_SHAPES)}, got {shape!r}")
+    required, optional = _BODY_SHAPES[shape]
+    _check_keys(bspec, ("shape", "material") + required, _BODY_COMMON + optional, where)
+    mspec = bspec["material"]
+    if not isinstance(mspec, dict) or "model" not in mspec:
+        raise SceneError(f"{where}.material: missing required key 'model'")
+    model_name = mspec["model"]
+    if model_name not in MATERIALS:
+        raise SceneError(f"{where}.material.model must be one of {tuple(MATERIALS)}, got {model_name!r}")
+    cls = MATERIALS[model_name]
+    values = {key: val for key, val in mspec.items() if key not in ("model", "density")}
+    material_values = cls.validate(values, f"{where}.material")
+    density = _number(mspec.get("density", 1000.0), f"{where}.material.density", positive=True)
+    velocity = _vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
+
+    x, vol = _sample_body(bspec, dim, dx, base_dir, where)
+    if len(x) == 0:
+        raise SceneError(f"{where}: the body is empty (no particle falls inside its shape at dx = {dx})")
+    outside = np.any((x < lo) | (x > hi), axis=-1)
+    if outside.any():
+        raise SceneError(
+            f"{where}: {int(outside.sum())} of {len(x)} particles lie outside the domain "
+            f"lo={lo.tolist()} hi={hi.tolist()}"
+        )
+    name = str(bspec.get("name", f"body{k}"))
+    body = Body(name=name, material=cls(), x0=jnp.asarray(x, dtype), vol0=jnp.full((len(x),), vol, dtype))
+    bparams = {key: jnp.asarray(val, dtype) for key, val in material_values.items()}
+    bparams["density"] = jnp.asarray(density, dtype)
+    bparams["velocity"] = jnp.asarray(velocity, dtype)
+    return body, bparams
+
+
+def _build_collider(cspec, k, dim, base_dir, dtype):
+    where = f"colliders[{k}]"
+    if not isinstance(cspec, dict):
+        raise SceneError(f"{where}: expected a table/object")
+    kind = cspec.get("type")
+    if kind not in COLLIDER_TYPES:
+        raise SceneError(f"{where}.type must be one of {tuple(COLLIDER_TYPES)}, got {kind!r}")
+    ctor, required, optional = COLLIDER_TYPES[kind]
+    _check_keys(cspec, ("type",) + tuple(required), _COLLIDER_COMMON + tuple(optional), where)
+    contact = cspec.get("contact", "sticky")
+    if contact not in CONTACTS:
+        raise SceneError(f"{where}.contact must be one of {CONTACTS}, got {contact!r}")
+    friction = _number(cspec.get("friction", 0.0), f"{where}.friction")
+    if friction < 0:
+        raise SceneError(f"{where}.friction must be >= 0, got {friction}")
+    restitution = _number(cspec.get("restitution", 0.0), f"{where}.restitution")
+    if not 0 <= restitution <= 1:
+        raise SceneError(f"{where}.restitution must be in [0, 1], got {restitution}")
+    name = str(cspec.get("name", f"{kind}{k}"))
+    collider = ctor(cspec, name, dim, base_dir)
+    cparams = {"friction": jnp.asarray(friction, dtype), "restitution": jnp.asarray(restitution, dtype)}
+    return collider, cparams
