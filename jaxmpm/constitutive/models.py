@@ -168,6 +168,25 @@ class Plasticine(Material):
         return _hencky_kirchhoff(F, mu, lam)
 
 
+def drucker_prager_alpha(friction_angle, dim: int):
+    """Cone slope alpha of the Drucker–Prager yield surface ``||s|| = -alpha tr(tau)``.
+
+    3D: Klar et al. / PAC-NeRF, ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))`` (the cone
+    through Mohr–Coulomb's triaxial-compression corners).
+
+    2D (PAC-NeRF has no 2D model, so this is jaxmpm's choice): ``alpha = tan(phi) / sqrt(2)``.
+    In 2D ``||s|| = |tau_1 - tau_2| / sqrt(2)``, so in steady simple shear (equal normal
+    stresses p) the yield stress is ``tau = tan(phi) p``: a flowing layer stops at slopes below
+    phi, i.e. phi is the angle of repose. The 3D formula used in 2D would give a repose angle of
+    ``atan(4 sin(phi) / (sqrt(3) (3 - sin(phi))))`` (about 32 degrees for phi = 40 degrees).
+    """
+    phi = jnp.deg2rad(friction_angle)
+    if dim == 2:
+        return jnp.tan(phi) / math.sqrt(2.0)
+    sin_phi = jnp.sin(phi)
+    return _SQRT_2_3 * 2.0 * sin_phi / (3.0 - sin_phi)
+
+
 class Sand(Material):
     """Drucker–Prager sand (Klar et al. 2016), cohesionless, as PAC-NeRF implements it.
 
@@ -186,10 +205,9 @@ class Sand(Material):
 
     def return_map(self, F_trial, C, aux, params, dt):
         mu, lam = lame_from_young(params["E"], params["nu"])
-        sin_phi = jnp.sin(jnp.deg2rad(params["friction_angle"]))
-        alpha = _SQRT_2_3 * 2.0 * sin_phi / (3.0 - sin_phi)
         U, eps, V = _hencky(F_trial)
         dim = eps.shape[-1]
+        alpha = drucker_prager_alpha(params["friction_angle"], dim)
         trace = jnp.sum(eps, axis=-1, keepdims=True)
         eps_hat = _deviatoric(eps)
         eps_hat_norm = safe_norm(eps_hat, keepdims=True)

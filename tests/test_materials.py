@@ -1,0 +1,139 @@
+"""Each material behaves as itself (2D, CI-sized), and plane contacts obey Coulomb's law."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scenes import block_spec
+
+from jaxmpm.scene import load_scene
+from jaxmpm.step import simulate
+
+FLOOR = {"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "sticky"}
+
+
+def _run(spec, dtype=jnp.float32):
+    scene = load_scene(spec, dtype=dtype)
+    traj = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None))(scene.params)
+    assert not np.asarray(traj.nan).any()
+    assert float(np.max(traj.cfl)) < 1.0
+    return scene, np.asarray(traj.x), np.asarray(traj.v)
+
+
+def _shape_change(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS distance between two particle sets after the best rigid alignment, / block size."""
+    a, b = a - a.mean(0), b - b.mean(0)
+    u, _, vt = np.linalg.svd(b.T @ a)
+    d = np.ones(a.shape[1])
+    d[-1] = np.sign(np.linalg.det(u @ vt))
+    R = (u * d) @ vt
+    return float(np.sqrt(np.mean(np.sum((a @ R.T - b) ** 2, -1))) / np.ptp(a[:, 0]))
+
+
+def _drop(material, velocity=-2.0, frames=16):
+    spec = block_spec(2, material, dx=0.025, lo=[0.4, 0.12], hi=[0.6, 0.32], frames=frames, substeps=80,
+                      velocity=[0.0, velocity], floor=FLOOR)
+    return _run(spec)
+
+
+def test_elastic_block_recovers_its_shape_and_plasticine_keeps_a_dent():
+    _, elastic, v_elastic = _drop({"model": "elastic", "E": 1e5, "nu": 0.3})
+    _, plastic, v_plastic = _drop({"model": "plasticine", "E": 1e5, "nu": 0.3, "yield_stress": 2e3})
+    # both hit the floor at 2 m/s; the elastic block bounces back, the plastic one does not
+    assert v_elastic[:, :, 1].mean(axis=1).max() > 0.5
+    assert v_plastic[4:, :, 1].mean(axis=1).max() < 0.1
+    assert _shape_change(elastic[0], elastic[-1]) < 0.02
+    assert _shape_change(plastic[0], plastic[-1]) > 0.15
+    height = lambda x: np.ptp(x[:, 1])  # noqa: E731
+    assert height(plastic[-1]) < 0.75 * height(plastic[0])
+    assert height(elastic[-1]) == pytest.approx(height(elastic[0]), rel=0.05)
+
+
+def test_viscoplastic_holds_below_yield_and_flows_above():
+    base = {"model": "viscoplastic", "mu": 1e4, "kappa": 1e5, "eta": 10.0}
+    _, strong, _ = _drop({**base, "yield_stress": 1e5}, velocity=0.0)
+    _, weak, _ = _drop({**base, "yield_stress": 10.0}, velocity=0.0)
+    assert _shape_change(strong[0], strong[-1]) < 0.02
+    assert np.ptp(weak[-1][:, 1]) < 0.4 * np.ptp(weak[0][:, 1])
+    assert np.ptp(weak[-1][:, 0]) > 2.5 * np.ptp(weak[0][:, 0])
+
+
+def test_newtonian_spreads_flat():
+    _, x, _ = _drop({"model": "newtonian", "mu": 1.0, "kappa": 1e4}, velocity=0.0, frames=24)
+    heights = x[-1][:, 1] - 0.1
+    assert np.percentile(heights, 90) < 0.3 * np.ptp(x[0][:, 1])
+    assert np.ptp(x[-1][:, 0]) > 3.0 * np.ptp(x[0][:, 0])
+
+
+def _surface_slope_degrees(x: np.ndarray, floor: float = 0.0, bins: int = 40) -> float:
+    """Slope of the pile's flank: a line through the column tops between 20% and 80% of the height."""
+    edges = np.linspace(x[:, 0].min(), x[:, 0].max(), bins + 1)
+    centres, tops = [], []
+    for a, b in zip(edges[:-1], edges[1:]):
+        inside = (x[:, 0] >= a) & (x[:, 0] < b)
+        if inside.any():
+            centres.append(0.5 * (a + b))
+            tops.append(x[inside, 1].max() - floor)
+    centres, tops = np.asarray(centres), np.asarray(tops)
+    flank = (tops > 0.2 * tops.max()) & (tops < 0.8 * tops.max())
+    return math.degrees(math.atan(abs(np.polyfit(centres[flank], tops[flank], 1)[0])))
+
+
+def _sand_spec(phi, body, gravity=(0.0, -9.8), hi=(1.0, 0.5), frames=24):
+    return {
+        "dim": 2, "dx": 0.02, "domain": {"lo": [0.0, 0.0], "hi": list(hi)}, "frames": frames,
+        "frame_dt": 1 / 24, "substeps": 260, "gravity": list(gravity),
+        "bodies": [{"shape": "box", **body, "material": {"model": "sand", "friction_angle": phi}}],
+        "colliders": [{"type": "plane", "point": [0.0, 0.0], "normal": [0.0, 1.0], "contact": "sticky"}],
+    }
+
+
+def test_sand_column_collapses_to_its_angle_of_repose():
+    phi = 30.0
+    _, x, v = _run(_sand_spec(phi, {"lo": [0.0, 0.0], "hi": [0.2, 0.2]}))
+    assert np.abs(v[-1]).max() < 0.05  # the pile has come to rest
+    assert x[-1][:, 0].max() > 0.3  # it did collapse
+    assert abs(_surface_slope_degrees(x[-1]) - phi) < 5.0
+
+
+@pytest.mark.parametrize("phi", [30.0, 40.0])
+def test_sand_layer_rests_below_and_flows_above_the_friction_angle(phi):
+    """Infinite-slope test (gravity tilted by theta over a sticky floor): repose angle = phi."""
+
+    def surface_speed(theta):
+        t = math.radians(theta)
+        spec = _sand_spec(phi, {"lo": [0.2, 0.0], "hi": [1.8, 0.08]}, gravity=(9.8 * math.sin(t), -9.8 * math.cos(t)),
+                          hi=(2.0, 0.3), frames=12)
+        _, x, v = _run(spec)
+        middle = (x[0, :, 0] > 0.8) & (x[0, :, 0] < 1.2) & (x[0, :, 1] > 0.06)
+        return float(v[-1][middle, 0].mean())
+
+    assert surface_speed(phi - 6.0) < 0.02
+    assert surface_speed(phi + 4.0) > 0.1
+
+
+@pytest.mark.parametrize("mu,theta,v0", [(0.3, 30.0, 0.0), (0.5, 35.0, 0.0), (0.7, 25.0, 1.0)])
+def test_block_on_friction_plane_obeys_coulomb(mu, theta, v0):
+    """An elastic block on a `friction` plane under gravity tilted by theta (the incline's frame).
+
+    tan(theta) > mu: it starts sliding from rest with a = g (sin - mu cos). tan(theta) < mu:
+    launched down the slope at v0 it decelerates at the same law and stops.
+    """
+    t = math.radians(theta)
+    expected = 9.8 * (math.sin(t) - mu * math.cos(t))
+    frames = 8 if expected > 0 else 16
+    spec = block_spec(
+        2, {"model": "elastic", "E": 2e5, "nu": 0.3}, dx=0.02, lo=[0.2, 0.1], hi=[0.36, 0.18], frames=frames,
+        substeps=60, velocity=[v0, 0.0], gravity=[9.8 * math.sin(t), -9.8 * math.cos(t)],
+        floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "friction", "friction": mu},
+    )
+    scene, x, v = _run(spec)
+    times = np.asarray(scene.model.frame_times())
+    vx = v[:, :, 0].mean(axis=1)
+    sliding = slice(2, None) if expected > 0 else (times > 0.05) & (times < 0.8 * v0 / -expected)
+    accel = np.polyfit(times[sliding], vx[sliding], 1)[0]
+    assert accel == pytest.approx(expected, rel=0.05)
+    if expected < 0:
+        assert abs(vx[-1]) < 0.05 * v0  # it stopped (and stays)
