@@ -119,8 +119,11 @@ def from_unconstrained(name: str, y):
 
 
 def apply_unconstrained(model: Model, params: Params, names, y: dict) -> Params:
+    """``params`` with the named leaves set from optimisation variables (cast to the leaves' dtype)."""
     for name in names:
-        params = set_param(params, resolve_name(model, params, name), from_unconstrained(name, y[name]))
+        path = resolve_name(model, params, name)
+        dtype = jnp.asarray(get_param(params, path)).dtype
+        params = set_param(params, path, from_unconstrained(name, y[name]).astype(dtype))
     return params
 
 
@@ -286,10 +289,13 @@ def fit(
     start = time.perf_counter()
     for attempt in range(max_dt_halvings + 1):
         residual_fn = track_residual_fn(model, observation, checkpoint)
-        y0 = {n: to_unconstrained(n, jnp.asarray(v, model.bodies[0].x0.dtype)) for n, v in initial.items()}
+        # optimisation variables in JAX's default float (float64 when x64 is on: optimistix's
+        # damping terms take that dtype), cast to the model's dtype inside the residuals
+        y0 = {n: to_unconstrained(n, jnp.asarray(v, jnp.result_type(float))) for n, v in initial.items()}
 
         def residuals(y):
-            return residual_fn(apply_unconstrained(model, params, names, y))
+            r = residual_fn(apply_unconstrained(model, params, names, y))
+            return r.astype(jnp.result_type(float))
 
         r0 = jax.jit(residuals)(y0)
         if bool(jnp.all(jnp.isfinite(r0))):
