@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -50,6 +51,10 @@ class Observation:
 
     def validate(self, source: str = "observation") -> None:
         """Check shapes and the presence rules of §5.2; raise ObservationError naming the key."""
+        for key in ("times", "positions", "intrinsics", "cam_to_world", "probe_times", "probe_values"):
+            value = getattr(self, key)
+            if value is not None and not _is_real(value):
+                raise ObservationError(f"{source}: '{key}' must be a numeric array, got {np.asarray(value).dtype}")
         t = np.asarray(self.times)
         if t.ndim != 1 or len(t) == 0 or not np.all(np.isfinite(t)):
             raise ObservationError(f"{source}: 'times' must be a non-empty 1-D array of finite seconds")
@@ -60,8 +65,10 @@ class Observation:
         T = len(t)
         if self.positions is not None:
             p = np.asarray(self.positions)
-            if p.ndim != 3 or p.shape[0] != T or p.shape[2] not in (2, 3):
-                raise ObservationError(f"{source}: 'positions' must have shape (T={T}, N, D), got {p.shape}")
+            if p.ndim != 3 or p.shape[0] != T or p.shape[1] == 0 or p.shape[2] not in (2, 3):
+                raise ObservationError(f"{source}: 'positions' must have shape (T={T}, N >= 1, D = 2 or 3), got {p.shape}")
+            if np.any(np.isinf(p)):
+                raise ObservationError(f"{source}: 'positions' contain infinite values (use NaN for missing points)")
             if np.all(np.isnan(p)):
                 raise ObservationError(f"{source}: 'positions' are all NaN")
         if self.point_ids not in (None, "particles"):
@@ -86,6 +93,8 @@ class Observation:
                     f"{np.shape(self.intrinsics)} and {np.shape(self.cam_to_world)}"
                 )
         if self.probe_names is not None:
+            if isinstance(self.probe_names, str) or not all(isinstance(n, str) for n in self.probe_names):
+                raise ObservationError(f"{source}: 'probe_names' must be a list of strings, got {self.probe_names!r}")
             P = len(self.probe_names)
             pt, pv = np.asarray(self.probe_times), np.asarray(self.probe_values)
             if pt.ndim != 2 or pt.shape[0] != P or pv.shape != pt.shape:
@@ -93,9 +102,23 @@ class Observation:
                     f"{source}: 'probe_times' and 'probe_values' must both be (P={P}, Tp), got {pt.shape} and {pv.shape}"
                 )
 
+        if self.scene is not None:
+            try:
+                spec = json.loads(self.scene)
+            except (TypeError, ValueError) as err:
+                raise ObservationError(f"{source}: 'scene' must be the scene spec as JSON text ({err})") from None
+            if not isinstance(spec, dict):
+                raise ObservationError(f"{source}: 'scene' must be a JSON object, got {type(spec).__name__}")
+
     @property
     def scene_spec(self) -> dict | None:
         return None if self.scene is None else json.loads(self.scene)
+
+
+def _is_real(value) -> bool:
+    """Whether ``value`` is an array of real numbers (not strings, objects or booleans)."""
+    dtype = np.asarray(value).dtype
+    return np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)
 
 
 def atomic_write(path: str | Path, write) -> Path:
@@ -143,6 +166,8 @@ def load_observation(path: str | Path) -> Observation:
     path = Path(path)
     if not path.is_file():
         raise ObservationError(f"observation file not found: {path}")
+    if not zipfile.is_zipfile(path):
+        raise ObservationError(f"{path}: not an .npz observation file (not a zip archive)")
     try:
         with np.load(path, allow_pickle=False) as data:
             contents = {k: data[k] for k in data.files}
@@ -160,9 +185,15 @@ def load_observation(path: str | Path) -> Observation:
     kwargs = dict(contents)
     for key in ("point_ids", "scene"):
         if key in kwargs:
+            value = kwargs[key]
+            if value.shape != () or value.dtype.kind != "U":
+                raise ObservationError(f"{path}: '{key}' must be a string, got a {value.dtype} array of shape {value.shape}")
             kwargs[key] = str(kwargs[key])
     if "probe_names" in kwargs:
-        kwargs["probe_names"] = tuple(str(s) for s in kwargs["probe_names"])
+        names = kwargs["probe_names"]
+        if names.ndim != 1 or names.dtype.kind != "U":
+            raise ObservationError(f"{path}: 'probe_names' must be a 1-D array of strings, got {names.dtype} {names.shape}")
+        kwargs["probe_names"] = tuple(str(s) for s in names)
     try:
         obs = Observation.__new__(Observation)
         for f in fields(Observation):
