@@ -1,1 +1,47 @@
-"""jaxmpm: a differentiable Material Point Method in pure JAX."""
+"""jaxmpm: a differentiable Material Point Method in pure JAX for system identification.
+
+The public API is re-exported here; private module names may change.
+"""
+
+from . import constitutive as constitutive
+from . import render as render
+from .colliders import Box as Box
+from .colliders import Collider as Collider
+from .colliders import GaussianDisks as GaussianDisks
+from .colliders import MeshCollider as MeshCollider
+from .colliders import Plane as Plane
+from .colliders import asset_path as asset_path
+from .colliders import project_velocity as project_velocity
+from .constitutive import MATERIALS as MATERIALS
+from .constitutive import Elastic as Elastic
+from .constitutive import Material as Material
+from .constitutive import Newtonian as Newtonian
+from .constitutive import Plasticine as Plasticine
+from .constitutive import Sand as Sand
+from .constitutive import Viscoplastic as Viscoplastic
+from .constitutive import svd as svd
+from .cpic import CollisionField as CollisionField
+from .cpic import build_collision_field as build_collision_field
+from .errors import JaxmpmError as JaxmpmError
+from .errors import ObservationError as ObservationError
+from .errors import SceneError as SceneError
+from .errors import SimulationError as SimulationError
+from .fit import FitResult as FitResult
+from .fit import fit as fit
+from .model import Body as Body
+from .model import Model as Model
+from .model import initial_state as initial_state
+from .observe import Observation as Observation
+from .observe import load_observation as load_observation
+from .observe import save_observation as save_observation
+from .scene import Scene as Scene
+from .scene import load_scene as load_scene
+from .state import Grid as Grid
+from .state import State as State
+from .state import make_state as make_state
+from .step import Trajectory as Trajectory
+from .step import run_frames as run_frames
+from .step import simulate as simulate
+from .step import step as step
+
+__version__ = "0.1.0"

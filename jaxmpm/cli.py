@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -18,6 +19,15 @@ def _progress_bar(total: int, desc: str):
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=desc, unit="frame", disable=not sys.stderr.isatty(), leave=False)
+
+
+def _check_output(out: str) -> None:
+    """Fail before a long run when the output cannot be written."""
+    path = Path(out)
+    if path.is_dir():
+        raise JaxmpmError(f"--out {out} is a folder; give a file name")
+    if path.parent.exists() and not os.access(path.parent, os.W_OK):
+        raise JaxmpmError(f"--out {out}: cannot write to {path.parent}")
 
 
 def _write_json(path: Path, payload: dict) -> None:
@@ -37,6 +47,7 @@ def cmd_simulate(args) -> int:
     from .step import run_frames
     from .scene import load_scene
 
+    _check_output(args.out)
     scene = load_scene(args.scene, dtype=_dtype(args))
     model = scene.model
     print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, "
@@ -57,13 +68,19 @@ def cmd_simulate(args) -> int:
 
 
 def _render_into(obs, scene, positions, args):
-    try:
-        from .render import render_views
-    except ImportError as err:  # pragma: no cover - renderer is part of the package
-        raise JaxmpmError(f"rendering is unavailable: {err}") from None
+    """Render the trajectory from ``args.views`` cameras of a PAC-NeRF-like rig (45° field of view)
+    centred on the particles' bounding box over all frames, far enough to see all of it."""
+    from .render import pacnerf_rig, render_views
+
     if scene.model.dim != 3:
         raise JaxmpmError("--views needs a 3D scene")
-    rendered = render_views(positions, scene_views=args.views, res=args.res, renderer=args.renderer, scene=scene)
+    if args.views < 1 or args.res < 8:
+        raise JaxmpmError(f"--views must be >= 1 and --res >= 8, got {args.views} and {args.res}")
+    lo, hi = positions.min(axis=(0, 1)), positions.max(axis=(0, 1))
+    radius = 1.1 * 0.5 * float(np.linalg.norm(hi - lo)) / np.sin(np.deg2rad(45.0) / 2)
+    cameras = pacnerf_rig(args.views, radius=radius, target=tuple((lo + hi) / 2), fov_deg=45.0, res=args.res)
+    print(f"rendering {args.views} views at {args.res}x{args.res} with the {args.renderer} renderer", file=sys.stderr)
+    rendered = render_views(positions, cameras, renderer=args.renderer)
     obs.masks = rendered["masks"]
     obs.images = rendered["images"]
     obs.intrinsics = rendered["intrinsics"]
@@ -91,6 +108,7 @@ def cmd_fit(args) -> int:
     from .observe import load_observation
     from .scene import load_scene
 
+    _check_output(args.out)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
     names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else _default_names(scene)
@@ -215,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except JaxmpmError as err:
+    except (JaxmpmError, OSError) as err:  # OSError: an unwritable --out, a full disk
         print(f"jaxmpm {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:

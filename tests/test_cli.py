@@ -209,13 +209,9 @@ def test_unstable_simulation_exits_2_and_keeps_the_old_output(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["obs.npz", "unstable.toml"]
 
 
-# --------------------------------------------------------------------------- known gap in cli.py
+# --------------------------------------------------------------------------- unwritable outputs
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli.main catches only JaxmpmError: an unwritable --out (here a folder) ends in an OSError traceback",
-)
 def test_unwritable_output_exits_2(simulated, tmp_path, capsys):
     _, scene, _, _ = simulated
     folder = tmp_path / "a_folder"

@@ -3,6 +3,7 @@
 from .base import Material as Material
 from .base import lame_from_young as lame_from_young
 from .models import MATERIALS as MATERIALS
+from .models import Corotated as Corotated
 from .models import Elastic as Elastic
 from .models import Newtonian as Newtonian
 from .models import Plasticine as Plasticine

@@ -96,6 +96,30 @@ class Elastic(Material):
         return mu * (FFt - eye) + lam * log_J[:, None, None] * eye
 
 
+class Corotated(Material):
+    """Fixed-corotated elasticity (Stomakhin et al. 2012), the usual MPM benchmark material:
+    ``tau = 2 mu (F - R) F^T + lam (J - 1) J I`` with ``R = U V^T``; no plasticity.
+
+    Not a PAC-NeRF material; it is here for comparisons with Taichi/Warp MPM codes.
+    Parameters: ``E`` (Pa), ``nu``.
+    """
+
+    name: ClassVar[str] = "corotated"
+    required: ClassVar[tuple[str, ...]] = ("E", "nu")
+    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON}
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        return F_trial, aux
+
+    def kirchhoff(self, F, C, aux, params):
+        mu, lam = lame_from_young(params["E"], params["nu"])
+        U, _, V = svd(F)
+        R = jnp.einsum("nij,nkj->nik", U, V)
+        J = det(F)[:, None, None]
+        eye = jnp.eye(F.shape[-1], dtype=F.dtype)
+        return 2.0 * mu * jnp.einsum("nij,nkj->nik", F - R, F) + lam * (J - 1.0) * J * eye
+
+
 class Newtonian(Material):
     """PAC-NeRF's J-only fluid: ``tau = kappa (J - J^-6) I + mu J sym(C)``.
 
@@ -222,5 +246,5 @@ class Sand(Material):
 
 
 MATERIALS: dict[str, type[Material]] = {
-    cls.name: cls for cls in (Elastic, Newtonian, Viscoplastic, Plasticine, Sand)
+    cls.name: cls for cls in (Elastic, Newtonian, Viscoplastic, Plasticine, Sand, Corotated)
 }

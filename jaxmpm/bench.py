@@ -1,0 +1,187 @@
+"""``jaxmpm bench step``: time one MLS-MPM step against Taichi and Warp on the same machine.
+
+The scene is the peers' (``benchmarks/peers/common.py``): a cube of elastic material at ~8
+particles per cell in the unit box on a 64^3 grid, dt = 1e-4, gravity, slip walls. Each
+measurement runs in its own subprocess so that its peak RSS is its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+GRID_PADDING_CELLS = 3
+
+
+def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
+    """The peers' cube as a jaxmpm model: the domain is the unit box less the 3-cell wall band."""
+    import jax.numpy as jnp
+
+    from .constitutive import MATERIALS
+    from .model import Body, Model
+    from .state import Grid
+
+    sys.path.insert(0, str(_repo_root()))
+    from benchmarks.peers.common import MPMParams, initial_state
+
+    p = MPMParams(grid_n=grid_n)
+    state = initial_state(n_particles, grid_n)
+    dx = p.dx
+    grid = Grid(lo=(GRID_PADDING_CELLS * dx,) * 3, hi=(1.0 - GRID_PADDING_CELLS * dx,) * 3, dx=dx)
+    body = Body(
+        name="cube",
+        material=MATERIALS[material](),
+        x0=jnp.asarray(state["x"], dtype),
+        vol0=jnp.full((len(state["x"]),), p.p_vol, dtype),
+    )
+    model = Model(grid=grid, bodies=(body,), frame_dt=p.dt, substeps=1, frames=2)
+    values = {"elastic": {"E": p.E, "nu": p.nu}, "corotated": {"E": p.E, "nu": p.nu},
+              "newtonian": {"mu": 1.0, "kappa": p.E}, "sand": {"friction_angle": 30.0, "E": p.E, "nu": p.nu},
+              "viscoplastic": {"mu": p.mu, "kappa": p.lam + 2 * p.mu / 3, "yield_stress": 1e3, "eta": 1.0}}[material]
+    params = {
+        "gravity": jnp.asarray(p.gravity, dtype),
+        "bodies": ({**{k: jnp.asarray(v, dtype) for k, v in values.items()}, "density": jnp.asarray(p.rho, dtype),
+                    "velocity": jnp.zeros(3, dtype)},),
+        "colliders": (),
+    }
+    return model, params
+
+
+def _repo_root() -> Path:
+    here = Path(__file__).resolve().parent.parent
+    return here if (here / "benchmarks").is_dir() else Path.cwd()
+
+
+def measure_jax(material: str, n_particles: int, grid_n: int, steps: int, mode: str) -> dict:
+    """Time ``steps`` jitted steps (``mode="forward"``) or their gradient (``"backward"``)."""
+    import jax
+    import jax.numpy as jnp
+
+    from .model import initial_state
+    from .step import step
+
+    model, params = _scene_model(n_particles, grid_n, material, jnp.float32)
+    state0 = initial_state(model, params)
+
+    def rollout(params, state):
+        def body(s, _):
+            return jax.checkpoint(lambda s: step(model, params, s))(s), None
+
+        return jax.lax.scan(body, state, None, length=steps)[0]
+
+    if mode == "forward":
+        fn = jax.jit(rollout)
+    else:
+        def loss(params, state):
+            return jnp.mean(rollout(params, state).x ** 2)
+
+        fn = jax.jit(jax.grad(loss))
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(params, state0))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(params, state0))
+        times.append(time.perf_counter() - t0)
+    return {"ms_per_step": 1e3 * float(np.median(times)) / steps, "compile_s": compile_s,
+            "n_particles": int(model.num_particles), "version": jax.__version__}
+
+
+def _child(argv: list[str]) -> None:
+    """Run one measurement and print its JSON with the process's peak RSS."""
+    import resource
+
+    kind, rest = argv[0], json.loads(argv[1])
+    if kind == "jax":
+        out = measure_jax(**rest)
+    else:
+        sys.path.insert(0, str(_repo_root()))
+        module = __import__(f"benchmarks.peers.{kind}_step", fromlist=["bench"])
+        ok, why = module.available()
+        if not ok:
+            out = {"skipped": why}
+        else:
+            out = module.bench(n_particles=rest["n_particles"], grid_n=rest["grid_n"], steps=rest["steps"])
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print("BENCH-JSON " + json.dumps(out))
+
+
+def _run_child(kind: str, **kwargs) -> dict:
+    cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench import _child; _child(sys.argv[1:])",
+           kind, json.dumps(kwargs)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=_repo_root())
+    for line in proc.stdout.splitlines():
+        if line.startswith("BENCH-JSON "):
+            return json.loads(line[len("BENCH-JSON "):])
+    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+    return {"skipped": "failed: " + " | ".join(tail)}
+
+
+def machine_description() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def bench_step(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="jaxmpm bench step", description=__doc__)
+    parser.add_argument("--particles", type=int, default=25_000)
+    parser.add_argument("--grid", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=50, help="steps per timed rollout")
+    parser.add_argument("--materials", default="elastic,corotated,newtonian,sand,viscoplastic")
+    parser.add_argument("--no-peers", action="store_true", help="skip Taichi and Warp")
+    parser.add_argument("--json", default=None, help="also write the results as JSON")
+    args = parser.parse_args(argv)
+    common = {"n_particles": args.particles, "grid_n": args.grid, "steps": args.steps}
+    rows, peers = [], {}
+    if not args.no_peers:
+        for kind in ("taichi", "warp"):
+            print(f"timing {kind} ...", file=sys.stderr, flush=True)
+            peers[kind] = _run_child(kind, **{**common, "steps": max(args.steps, 100)})
+    for material in args.materials.split(","):
+        for mode in ("forward", "backward"):
+            print(f"timing jaxmpm {material} {mode} ...", file=sys.stderr, flush=True)
+            rows.append({"material": material, "mode": mode, **_run_child("jax", material=material, mode=mode, **common)})
+    taichi_ms = peers.get("taichi", {}).get("ms_per_step")
+    print(f"\nmachine: {machine_description()}; {args.particles} particles, {args.grid}^3 grid, dt = 1e-4, float32\n")
+    print(f"{'code':<32}{'ms/step':>10}{'x Taichi':>10}{'compile s':>11}{'peak RSS MB':>13}")
+    for kind, res in peers.items():
+        if "skipped" in res:
+            print(f"{kind + ' (fixed corotated)':<32}  skipped: {res['skipped']}")
+        else:
+            ratio = res["ms_per_step"] / taichi_ms if taichi_ms else float("nan")
+            print(f"{kind + ' (fixed corotated)':<32}{res['ms_per_step']:>10.2f}{ratio:>10.2f}"
+                  f"{res['compile_s']:>11.1f}{res['peak_rss_mb']:>13.0f}")
+    for r in rows:
+        name = f"jaxmpm {r['material']} {r['mode'] if r['mode'] == 'forward' else 'fwd+bwd'}"
+        if "skipped" in r:
+            print(f"{name:<32}  {r['skipped']}")
+            continue
+        ratio = r["ms_per_step"] / taichi_ms if taichi_ms else float("nan")
+        print(f"{name:<32}{r['ms_per_step']:>10.2f}{ratio:>10.2f}{r['compile_s']:>11.1f}{r['peak_rss_mb']:>13.0f}")
+    if not peers or all("skipped" in p for p in peers.values()):
+        print("\n(Taichi/Warp peers not timed: install them with pip install -e \".[bench]\" and run from the repo root)")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine_description(), "peers": peers, "jaxmpm": rows}, indent=2))
+    return 0
+
+
+def run_bench(what: str, argv: list[str]) -> int:
+    if what == "step":
+        return bench_step(argv)
+    raise ValueError(what)
