@@ -31,6 +31,11 @@ LOG10_PARAMS = frozenset({"E", "mu", "kappa", "yield_stress", "eta", "density"})
 NU_BOUNDS = (-0.45, 0.495)
 
 
+#: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
+#: which the fit stops at a stationary point.
+MAX_REJECTED_STEPS = 8
+
+
 class FitError(JaxmpmError, RuntimeError):
     """A fit could not start (e.g. the simulation is unstable even at small dt)."""
 
@@ -327,23 +332,32 @@ def fit(
     losses = [float(jnp.sum(r0**2))]
     if progress is not None:
         progress(0, losses[0])
-    converged, iterations, result = False, 0, None
+    converged, stalled, iterations = False, False, 0
     for iterations in range(1, max_steps + 1):
         y, state, done, result, loss = advance(y, state)
-        loss = float(loss)
-        if bool(state.num_accepted_steps > 0):
-            losses.append(loss)
+        # step 1 only evaluates the initial guess; later accepted steps move to a lower loss
+        accepted = iterations > 1 and int(state.num_steps_since_acceptance) == 0
+        if accepted:
+            losses.append(float(loss))
         if progress is not None:
             progress(iterations, losses[-1])
         if bool(done):
             converged = result == optx.RESULTS.successful
+            break
+        # At the loss's numerical floor no trial step can decrease it, so the trust region
+        # shrinks without the tolerance test ever passing: that is a stationary point too.
+        if int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
+            converged = stalled = True
             break
     # optimistix returns the last *accepted* point as y (trial points live in the state).
     y_best = y
     final_params = apply_unconstrained(model, params, names, y_best)
     values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}
     std = _gauss_newton_std(residuals, y_best, names)
-    if converged:
+    if stalled:
+        message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
+                   "lower the loss further: a stationary point at this precision)")
+    elif converged:
         message = f"converged in {iterations} iterations"
     else:
         message = f"did not converge within {max_steps} iterations; returning the best parameters so far"
