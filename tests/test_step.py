@@ -82,7 +82,7 @@ def _loss(model, checkpoint):
 
 
 def test_checkpoint_policies_give_identical_gradients():
-    spec = block_spec(2, {"model": "elastic", "E": 3e4, "nu": 0.3}, frames=3, substeps=10, floor={"point": [0, 0.28], "normal": [0, 1], "contact": "slip"})
+    spec = block_spec(2, {"model": "elastic", "E": 3e4, "nu": 0.3}, frames=3, substeps=4, floor={"point": [0, 0.28], "normal": [0, 1], "contact": "slip"})
     scene = load_scene(spec, dtype=jnp.float64)
     grads = {c: jax.grad(_loss(scene.model, c))(scene.params) for c in (None, "step", "frame", "nested")}
     ref = jax.tree_util.tree_leaves(grads[None])
@@ -107,7 +107,7 @@ def test_vmap_over_parameter_sets_equals_a_loop():
 
 
 def test_forward_and_reverse_mode_agree_for_velocity_and_gravity():
-    spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=3, substeps=10, floor={"point": [0, 0.28], "normal": [0, 1]})
+    spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=3, substeps=4, floor={"point": [0, 0.28], "normal": [0, 1]})
     scene = load_scene(spec, dtype=jnp.float64)
 
     def loss(v0, g):
