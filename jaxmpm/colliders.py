@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import abc
 import functools
-from typing import ClassVar
+from typing import Callable, ClassVar
 
 import equinox as eqx
 import jax
@@ -90,54 +90,9 @@ class Collider(eqx.Module):
         return jnp.zeros_like(x)
 
 
-class Plane(Collider):
-    """An infinite half-space ``{x : (x - point)·normal <= 0}`` (the solid side).
-
-    Attributes:
-        point: a point on the plane, length D, metres.
-        normal: the outward unit normal (normalised on construction), length D.
-    """
-
-    name: str = eqx.field(static=True)
-    contact: str = eqx.field(static=True)
-    point: tuple[float, ...] = eqx.field(static=True)
-    normal: tuple[float, ...] = eqx.field(static=True)
-
-    kind: ClassVar[str] = "plane"
-
-    def __init__(self, point, normal, contact: str = "sticky", name: str = "plane"):
-        point = tuple(float(p) for p in np.asarray(point, float).reshape(-1))
-        n = np.asarray(normal, float).reshape(-1)
-        if n.shape != (len(point),):
-            raise SceneError(f"collider {name!r}: 'normal' must have {len(point)} components")
-        norm = float(np.linalg.norm(n))
-        if not np.isfinite(norm) or norm == 0.0:
-            raise SceneError(f"collider {name!r}: 'normal' must be a non-zero vector, got {n.tolist()}")
-        if contact not in CONTACTS:
-            raise SceneError(f"collider {name!r}: 'contact' must be one of {CONTACTS}, got {contact!r}")
-        self.point = point
-        self.normal = tuple(float(c) for c in n / norm)
-        self.contact = contact
-        self.name = name
-
-    def signed_distance(self, x, time):
-        n = jnp.asarray(self.normal, x.dtype)
-        sd = (x - jnp.asarray(self.point, x.dtype)) @ n
-        return sd, jnp.broadcast_to(n, x.shape)
-
-
-def plane_from_spec(spec: dict, name: str, dim: int, base_dir) -> Plane:
-    point, normal = spec["point"], spec["normal"]
-    if len(point) != dim:
-        raise SceneError(f"collider {name!r}: 'point' must have {dim} components")
-    return Plane(point, normal, contact=spec.get("contact", "sticky"), name=name)
-
-
 #: Scene ``type`` -> (constructor from a spec dict, required keys, optional keys).
 #: Every collider spec may also have ``contact``, ``friction``, ``restitution``, ``name``.
-COLLIDER_TYPES: dict[str, tuple] = {
-    "plane": (plane_from_spec, ("point", "normal"), ()),
-}
+COLLIDER_TYPES: dict[str, tuple] = {}
 
 
 # =====================================================================================
@@ -292,6 +247,12 @@ class RigidCollider(Collider):
         velocity: pivot velocity ``v``, length D, m/s.
         angular_velocity: ``w`` in rad/s, length 3 in 3D, length 1 in 2D.
         pivot: ``c0``, the centre of rotation at t = 0, length D, metres.
+        motion: optional scripted motion, a callable ``motion(t) -> (c, R)`` (jnp-traceable,
+            ``t`` a scalar array) giving the pivot's world position ``c (D,)`` and the rotation
+            ``R (D, D)`` at time t, so that a rest-frame point X sits at ``c + R (X - c0)``.
+            It replaces ``velocity``/``angular_velocity``; the surface velocity is its time
+            derivative (``jax.jvp``). ``motion(0)`` need not be the identity placement: the
+            collision field lives in the rest frame (the geometry as constructed).
     """
 
     velocity: eqx.AbstractVar[tuple[float, ...]]
@@ -304,8 +265,13 @@ class RigidCollider(Collider):
 
     @property
     def moving(self) -> bool:
-        """True if the collider has a non-zero velocity or angular velocity."""
-        return any(c != 0.0 for c in self.velocity + self.angular_velocity)
+        """True if the collider moves: a scripted ``motion``, or a non-zero (angular) velocity."""
+        return getattr(self, "motion", None) is not None or any(c != 0.0 for c in self.velocity + self.angular_velocity)
+
+    @property
+    def rotating(self) -> bool:
+        """True if the collider may rotate (a scripted ``motion`` or a non-zero angular velocity)."""
+        return getattr(self, "motion", None) is not None or any(c != 0.0 for c in self.angular_velocity)
 
     @abc.abstractmethod
     def bounds(self) -> np.ndarray:
@@ -325,6 +291,10 @@ class RigidCollider(Collider):
         """
         dtype = dtype or jnp.result_type(float)
         t = jnp.asarray(time).astype(dtype)
+        motion = getattr(self, "motion", None)
+        if motion is not None and velocity is None and angular_velocity is None:
+            c, r = motion(t)
+            return jnp.asarray(c).astype(dtype), jnp.asarray(r).astype(dtype)
         v = jnp.asarray(self.velocity if velocity is None else velocity).astype(dtype)
         w = jnp.asarray(self.angular_velocity if angular_velocity is None else angular_velocity).astype(dtype)
         c = jnp.asarray(self.pivot, dtype) + v * t
@@ -344,7 +314,7 @@ class RigidCollider(Collider):
 
     def to_world_vectors(self, n, time, angular_velocity=None):
         """Rotate rest-frame vectors (normals) ``n (M, D)`` to the world frame at ``time``."""
-        if angular_velocity is None and not any(self.angular_velocity):
+        if angular_velocity is None and not self.rotating:
             return n
         _, r = self.rigid_transform(time, None, angular_velocity, n.dtype)
         return n @ r.T
@@ -355,6 +325,10 @@ class RigidCollider(Collider):
             return jnp.zeros_like(x)
         dtype = x.dtype
         t = jnp.asarray(time).astype(dtype)
+        if getattr(self, "motion", None) is not None and velocity is None and angular_velocity is None:
+            # Scripted motion: d/dt of x = c(t) + R(t)(X - c0) is c' + R' R^T (x - c).
+            (c, r), (dc, dr) = jax.jvp(lambda s: self.rigid_transform(s, dtype=dtype), (t,), (jnp.ones_like(t),))
+            return dc + (x - c) @ (dr @ r.T).T
         v = jnp.asarray(self.velocity if velocity is None else velocity).astype(dtype)
         w = jnp.asarray(self.angular_velocity if angular_velocity is None else angular_velocity).astype(dtype)
         c = jnp.asarray(self.pivot, dtype) + v * t
@@ -403,9 +377,14 @@ def _vector(value, n: int, name: str, key: str) -> tuple[float, ...]:
     return tuple(float(c) for c in a)
 
 
-def _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, default_pivot):
+def _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, default_pivot, motion=None):
     if contact not in CONTACTS:
         raise SceneError(f"collider {name!r}: 'contact' must be one of {CONTACTS}, got {contact!r}")
+    if motion is not None and not callable(motion):
+        raise SceneError(f"collider {name!r}: 'motion' must be a callable t -> (c(t), R(t)), got {motion!r}")
+    if motion is not None and (velocity is not None or angular_velocity is not None):
+        raise SceneError(f"collider {name!r}: give either 'motion' or 'velocity'/'angular_velocity', not both")
+    self.motion = motion
     self.name = name
     self.contact = contact
     self.velocity = _vector(np.zeros(dim) if velocity is None else velocity, dim, name, "velocity")
@@ -425,6 +404,79 @@ def _placement(spec: dict, name: str, dim: int):
     rot = spec.get("rotate", np.zeros(3 if dim == 3 else 1))
     rot = _vector(rot, 3 if dim == 3 else 1, name, "rotate")
     return np.broadcast_to(scale, (dim,)).astype(float), translate, rotation_matrix(rot, dim)
+
+
+# ------------------------------------------------------------------------------------
+# Plane
+# ------------------------------------------------------------------------------------
+
+
+class Plane(RigidCollider):
+    """An infinite half-space ``{x : (x - point)·normal <= 0}`` (the solid side).
+
+    Planes are applied analytically to grid nodes in every collision mode (PAC-NeRF's floor):
+    a half-space has a global inside, so it cannot be tunnelled through and needs no
+    particle-wise treatment. A plane may move rigidly like any collider (``velocity``,
+    ``angular_velocity`` about ``pivot`` = ``point`` by default, or a scripted ``motion``).
+
+    Attributes:
+        point: a point on the plane at t = 0, length D, metres.
+        normal: the outward unit normal at t = 0 (normalised on construction), length D.
+        velocity, angular_velocity, pivot, motion: rigid motion (see :class:`RigidCollider`).
+    """
+
+    name: str = eqx.field(static=True)
+    contact: str = eqx.field(static=True)
+    point: tuple[float, ...] = eqx.field(static=True)
+    normal: tuple[float, ...] = eqx.field(static=True)
+    velocity: tuple[float, ...] = eqx.field(static=True)
+    angular_velocity: tuple[float, ...] = eqx.field(static=True)
+    pivot: tuple[float, ...] = eqx.field(static=True)
+    motion: Callable | None = eqx.field(static=True)
+
+    kind: ClassVar[str] = "plane"
+
+    def __init__(
+        self,
+        point,
+        normal,
+        contact: str = "sticky",
+        name: str = "plane",
+        velocity=None,
+        angular_velocity=None,
+        pivot=None,
+        motion=None,
+    ):
+        point = tuple(float(p) for p in np.asarray(point, float).reshape(-1))
+        dim = len(point)
+        if dim not in (2, 3):
+            raise SceneError(f"collider {name!r}: 'point' must have 2 or 3 components")
+        n = np.asarray(normal, float).reshape(-1)
+        if n.shape != (dim,):
+            raise SceneError(f"collider {name!r}: 'normal' must have {dim} components")
+        norm = float(np.linalg.norm(n))
+        if not np.isfinite(norm) or norm == 0.0:
+            raise SceneError(f"collider {name!r}: 'normal' must be a non-zero vector, got {n.tolist()}")
+        self.point = point
+        self.normal = tuple(float(c) for c in n / norm)
+        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, np.asarray(point), motion)
+
+    def bounds(self) -> np.ndarray:
+        """A plane is unbounded: ``[-inf, +inf]`` on every axis."""
+        return np.stack([np.full(self.dim, -np.inf), np.full(self.dim, np.inf)])
+
+    def _local_signed_distance(self, X):
+        n = jnp.asarray(self.normal, X.dtype)
+        sd = (X - jnp.asarray(self.point, X.dtype)) @ n
+        return sd, jnp.broadcast_to(n, X.shape)
+
+
+def plane_from_spec(spec: dict, name: str, dim: int, base_dir) -> Plane:
+    """``type = "plane"``: ``point``, ``normal``; optional ``velocity``, ``angular_velocity``, ``pivot``."""
+    point, normal = spec["point"], spec["normal"]
+    if len(point) != dim:
+        raise SceneError(f"collider {name!r}: 'point' must have {dim} components")
+    return Plane(point, normal, contact=spec.get("contact", "sticky"), name=name, **_motion_args(spec, name, dim))
 
 
 # ------------------------------------------------------------------------------------
@@ -449,6 +501,7 @@ class Box(RigidCollider):
     velocity: tuple[float, ...] = eqx.field(static=True)
     angular_velocity: tuple[float, ...] = eqx.field(static=True)
     pivot: tuple[float, ...] = eqx.field(static=True)
+    motion: Callable | None = eqx.field(static=True)
 
     kind: ClassVar[str] = "box"
 
@@ -462,6 +515,7 @@ class Box(RigidCollider):
         velocity=None,
         angular_velocity=None,
         pivot=None,
+        motion=None,
     ):
         lo_a = np.asarray(lo, float).reshape(-1)
         dim = lo_a.size
@@ -476,7 +530,7 @@ class Box(RigidCollider):
         self.lo, self.hi = lo_t, hi_t
         self.rotation = tuple(tuple(float(c) for c in row) for row in rotation_matrix(rot, dim))
         centre = 0.5 * (np.asarray(lo_t) + np.asarray(hi_t))
-        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, centre)
+        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, centre, motion)
 
     @property
     def center(self) -> np.ndarray:
@@ -706,6 +760,7 @@ class MeshCollider(RigidCollider):
     velocity: tuple[float, ...] = eqx.field(static=True)
     angular_velocity: tuple[float, ...] = eqx.field(static=True)
     pivot: tuple[float, ...] = eqx.field(static=True)
+    motion: Callable | None = eqx.field(static=True)
 
     kind: ClassVar[str] = "mesh"
 
@@ -718,6 +773,7 @@ class MeshCollider(RigidCollider):
         velocity=None,
         angular_velocity=None,
         pivot=None,
+        motion=None,
     ):
         v = np.asarray(vertices, float)
         f = np.asarray(faces)
@@ -767,7 +823,7 @@ class MeshCollider(RigidCollider):
         self.closed = topo["closed"]
         used = v[np.unique(f)]
         default_pivot = 0.5 * (used.min(axis=0) + used.max(axis=0))
-        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, default_pivot)
+        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, default_pivot, motion)
 
     @property
     def num_faces(self) -> int:
@@ -1181,6 +1237,7 @@ class GaussianDisks(RigidCollider):
     velocity: tuple[float, ...] = eqx.field(static=True)
     angular_velocity: tuple[float, ...] = eqx.field(static=True)
     pivot: tuple[float, ...] = eqx.field(static=True)
+    motion: Callable | None = eqx.field(static=True)
 
     kind: ClassVar[str] = "disks"
 
@@ -1201,6 +1258,7 @@ class GaussianDisks(RigidCollider):
         velocity=None,
         angular_velocity=None,
         pivot=None,
+        motion=None,
     ):
         c = np.asarray(centers, float)
         if c.ndim != 2 or c.shape[1] not in (2, 3) or len(c) == 0:
@@ -1277,7 +1335,7 @@ class GaussianDisks(RigidCollider):
         self.opacity = StaticArray(o)
         self.cutoff = float(cutoff)
         bounds = self._bounds_np(c, tan, s, float(cutoff))
-        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, bounds.mean(axis=0))
+        _init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, bounds.mean(axis=0), motion)
 
     @staticmethod
     def _half_extents(tan, s, cutoff):
@@ -1369,6 +1427,7 @@ def disks_from_spec(spec: dict, name: str, dim: int, base_dir) -> GaussianDisks:
 _MOTION_KEYS = ("velocity", "angular_velocity", "pivot")
 COLLIDER_TYPES.update(
     {
+        "plane": (plane_from_spec, ("point", "normal"), _MOTION_KEYS),
         "box": (box_from_spec, ("lo", "hi"), ("rotate",) + _MOTION_KEYS),
         "mesh": (
             mesh_from_spec,

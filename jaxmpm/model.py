@@ -61,7 +61,22 @@ class Model(eqx.Module):
         frame_dt: seconds between output frames.
         substeps: MPM steps per frame (``dt = frame_dt / substeps``).
         frames: number of output frames, including the initial one at t = 0.
-        collision: how non-planar colliders act (``"cpic"``, ``"grid"``, ``"particles"``).
+        collision: how non-planar colliders act (planes are analytic grid conditions in
+            every mode):
+
+            * ``"cpic"`` (default): particle-wise, Compatible Particle-in-Cell (Hu et al. 2018;
+              AS-DiffMPM) — persistent side tags, compatibility-masked P2G, Coulomb-projected
+              ghost nodes in G2P, penetration correction (:mod:`jaxmpm.cpic`).
+            * ``"grid"``: grid-level signed-distance condition on the nodes inside the collider
+              (AS-DiffMPM's GOP-DiffMPM baseline), from the precomputed field.
+            * ``"particles"``: the collider is a layer of heavy rigid boundary particles that
+              take part in P2G (RP-DiffMPM baseline; sticky, ignores friction/restitution).
+        fields: per collider, its precomputed :class:`~jaxmpm.cpic.CollisionField` (``None``
+            for planes and in ``"particles"`` mode). Built on construction when not given.
+        boundary: per collider, its :class:`~jaxmpm.cpic.BoundaryParticles` (``"particles"``
+            mode only; else ``None``). Built on construction when not given.
+        penetration: strength in [0, 1] of the CPIC penetration correction: the fraction of a
+            predicted penetration undone in the same substep.
     """
 
     grid: Grid
@@ -71,10 +86,41 @@ class Model(eqx.Module):
     substeps: int = eqx.field(static=True, default=200)
     frames: int = eqx.field(static=True, default=16)
     collision: str = eqx.field(static=True, default="cpic")
+    fields: tuple | None = None
+    boundary: tuple | None = None
+    penetration: float = eqx.field(static=True, default=0.5)
+
+    def __post_init__(self):
+        if self.collision not in COLLISION_MODES:
+            raise ValueError(f"collision must be one of {COLLISION_MODES}, got {self.collision!r}")
+        from .cpic import build_boundary, build_fields, is_particle_wise
+
+        dtype = self.bodies[0].x0.dtype if self.bodies else None
+        k = len(self.colliders)
+        fields = tuple(self.fields) if self.fields is not None else (None,) * k
+        boundary = tuple(self.boundary) if self.boundary is not None else (None,) * k
+        if len(fields) != k or len(boundary) != k:
+            raise ValueError("Model.fields / Model.boundary must have one entry per collider")
+        # Build (only) what the collision mode needs and is missing; NumPy, once.
+        missing = [i for i, c in enumerate(self.colliders) if is_particle_wise(c)]
+        if self.collision in ("cpic", "grid"):
+            todo = [i for i in missing if fields[i] is None]
+            if todo:
+                built = build_fields([self.colliders[i] for i in todo], self.grid, dtype)
+                fields = tuple(built[todo.index(i)] if i in todo else f for i, f in enumerate(fields))
+        else:
+            todo = [i for i in missing if boundary[i] is None]
+            if todo:
+                built = build_boundary([self.colliders[i] for i in todo], self.grid, dtype)
+                boundary = tuple(built[todo.index(i)] if i in todo else b for i, b in enumerate(boundary))
+        self.fields = fields
+        self.boundary = boundary
 
     def __check_init__(self):
         if self.collision not in COLLISION_MODES:
             raise ValueError(f"collision must be one of {COLLISION_MODES}, got {self.collision!r}")
+        if not 0.0 <= self.penetration <= 1.0:
+            raise ValueError(f"penetration must be in [0, 1], got {self.penetration}")
 
     @property
     def dt(self) -> float:
@@ -105,6 +151,15 @@ class Model(eqx.Module):
     def with_substeps(self, substeps: int) -> "Model":
         """The same model with a different number of substeps per frame."""
         return dataclasses.replace(self, substeps=substeps)
+
+    def with_collision(self, collision: str) -> "Model":
+        """The same model with another collision mode (builds the fields it needs)."""
+        return dataclasses.replace(self, collision=collision)
+
+    def with_colliders(self, colliders) -> "Model":
+        """The same model with other colliders (their fields are rebuilt), e.g. to attach a
+        scripted ``motion`` to a collider loaded from a scene."""
+        return dataclasses.replace(self, colliders=tuple(colliders), fields=None, boundary=None)
 
 
 def initial_state(model: Model, params: Params) -> State:

@@ -1,7 +1,8 @@
-"""The particle state pytree and the static background-grid specification."""
+"""The particle state pytree, the static background-grid specification and the particles' stencil."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import equinox as eqx
@@ -119,3 +120,52 @@ def make_state(
         tag=jnp.zeros((n, num_colliders), jnp.int8),
         time=jnp.zeros((), dtype),
     )
+
+
+# --------------------------------------------------------------------------- stencil
+
+
+class Stencil(eqx.Module):
+    """Quadratic B-spline stencil of every particle, shared by P2G and G2P.
+
+    Attributes:
+        base: index of the stencil's lowest node per axis, ``(N, D)`` int32.
+        fx: particle position relative to ``base`` in cells, ``(N, D)``, in [0.5, 1.5).
+        w: per-axis weights of the three nodes, ``(3, N, D)``.
+    """
+
+    base: Int[Array, "N D"]
+    fx: Float[Array, "N D"]
+    w: Float[Array, "3 N D"]
+
+
+def stencil_offsets(dim: int) -> tuple[tuple[int, ...], ...]:
+    """The 3^D node offsets of the quadratic stencil (unrolled in Python)."""
+    return tuple(itertools.product(range(3), repeat=dim))
+
+
+def compute_stencil(grid: Grid, x: Float[Array, "N D"]) -> Stencil:
+    """Stencil of particles at ``x`` (positions are assumed inside the padded grid)."""
+    origin = jnp.asarray(grid.origin, x.dtype)
+    xi = (x - origin) / grid.dx
+    base = jnp.floor(xi - 0.5).astype(jnp.int32)
+    fx = xi - base.astype(x.dtype)
+    w = jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+    return Stencil(base=base, fx=fx, w=w)
+
+
+def grid_strides(shape: tuple[int, ...]) -> tuple[int, ...]:
+    strides, acc = [], 1
+    for n in reversed(shape):
+        strides.append(acc)
+        acc *= n
+    return tuple(reversed(strides))
+
+
+def offset_terms(grid: Grid, st: Stencil, offset: tuple[int, ...]):
+    """Flat node index ``(N,)``, weight ``(N,)`` and ``(x_i - x_p)/dx`` ``(N, D)`` of one offset."""
+    strides = grid_strides(grid.shape)
+    index = sum((st.base[:, d] + o) * s for d, (o, s) in enumerate(zip(offset, strides)))
+    weight = jnp.prod(jnp.stack([st.w[o, :, d] for d, o in enumerate(offset)], axis=-1), axis=-1)
+    dpos = jnp.asarray(offset, st.fx.dtype) - st.fx
+    return index, weight, dpos

@@ -1,16 +1,20 @@
 """One MLS-MPM step as a list of named stages, and ``simulate`` (nested ``lax.scan``).
 
-Stage order follows PAC-NeRF so results are comparable:
+Stage order follows PAC-NeRF so results are comparable; the collider stages are CPIC's
+(Hu et al. 2018, as adapted by AS-DiffMPM):
 
-    stencil -> F_trial = (I + dt C) F -> return map -> Kirchhoff stress -> P2G
-    -> grid update (gravity, colliders, domain walls) -> G2P -> advect
+    stencil -> gather collision field (CPIC: signed distance, normal, persistent side tags,
+    compatibility bits) -> F_trial = (I + dt C) F -> return map -> Kirchhoff stress
+    -> P2G (compatibility-masked; rigid boundary particles in "particles" mode)
+    -> grid update (gravity, planes, grid-level colliders in "grid" mode, domain walls)
+    -> G2P (incompatible nodes read the particle's own Coulomb-projected velocity)
+    -> advect (+ penetration correction)
 
 Every function here is pure and dimension-generic (D = 2 or 3 from array shapes).
 """
 
 from __future__ import annotations
 
-import itertools
 from typing import Any, Callable
 
 import equinox as eqx
@@ -18,58 +22,34 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from .colliders import project_velocity
+from . import cpic
+from .colliders import Plane, project_velocity
 from .model import Model, Params
-from .state import Grid, State
+from .state import Grid, State, Stencil, compute_stencil, offset_terms, stencil_offsets
+
+__all__ = [
+    "Stencil",
+    "compute_stencil",
+    "stencil_offsets",
+    "gather_contact",
+    "material_update",
+    "kirchhoff_stress",
+    "affine_momentum",
+    "p2g",
+    "p2g_boundary",
+    "grid_update",
+    "apply_grid_colliders",
+    "apply_domain_walls",
+    "g2p",
+    "advect",
+    "step",
+    "simulate",
+    "run_frames",
+    "Trajectory",
+]
 
 #: Grid nodes lighter than this times dx^D are treated as empty (PAC-NeRF: 1e-8 dx^3).
 MASS_EPS = 1e-8
-
-
-class Stencil(eqx.Module):
-    """Quadratic B-spline stencil of every particle, shared by P2G and G2P.
-
-    Attributes:
-        base: index of the stencil's lowest node per axis, ``(N, D)`` int32.
-        fx: particle position relative to ``base`` in cells, ``(N, D)``, in [0.5, 1.5).
-        w: per-axis weights of the three nodes, ``(3, N, D)``.
-    """
-
-    base: Int[Array, "N D"]
-    fx: Float[Array, "N D"]
-    w: Float[Array, "3 N D"]
-
-
-def stencil_offsets(dim: int) -> tuple[tuple[int, ...], ...]:
-    """The 3^D node offsets of the quadratic stencil (unrolled in Python)."""
-    return tuple(itertools.product(range(3), repeat=dim))
-
-
-def compute_stencil(grid: Grid, x: Float[Array, "N D"]) -> Stencil:
-    """Stencil of particles at ``x`` (positions are assumed inside the padded grid)."""
-    origin = jnp.asarray(grid.origin, x.dtype)
-    xi = (x - origin) / grid.dx
-    base = jnp.floor(xi - 0.5).astype(jnp.int32)
-    fx = xi - base.astype(x.dtype)
-    w = jnp.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
-    return Stencil(base=base, fx=fx, w=w)
-
-
-def _strides(shape: tuple[int, ...]) -> tuple[int, ...]:
-    strides, acc = [], 1
-    for n in reversed(shape):
-        strides.append(acc)
-        acc *= n
-    return tuple(reversed(strides))
-
-
-def _offset_terms(grid: Grid, st: Stencil, offset: tuple[int, ...]):
-    """Flat node index ``(N,)``, weight ``(N,)`` and ``(x_i - x_p)/dx`` ``(N, D)`` of one offset."""
-    strides = _strides(grid.shape)
-    index = sum((st.base[:, d] + o) * s for d, (o, s) in enumerate(zip(offset, strides)))
-    weight = jnp.prod(jnp.stack([st.w[o, :, d] for d, o in enumerate(offset)], axis=-1), axis=-1)
-    dpos = jnp.asarray(offset, st.fx.dtype) - st.fx
-    return index, weight, dpos
 
 
 # --------------------------------------------------------------------------- stages
@@ -100,26 +80,88 @@ def kirchhoff_stress(
     return jnp.concatenate(taus)
 
 
+def gather_contact(model: Model, st: Stencil, state: State) -> cpic.Contact | None:
+    """CPIC gather: per particle and particle-wise collider, the signed distance and normal
+    from the stencil's affine nodes, the updated persistent side tags and the bits of the
+    stencil nodes on the other side (see :func:`jaxmpm.cpic.gather_contact`).
+
+    ``None`` unless ``model.collision == "cpic"`` and some collider is not a plane.
+    """
+    if model.collision != "cpic":
+        return None
+    return cpic.gather_contact(model.grid, st, state.x, state.tag, state.time, model.colliders, model.fields)
+
+
+def affine_momentum(grid: Grid, state: State, tau: Float[Array, "N D D"], dt: float) -> Float[Array, "N D D"]:
+    """MLS fused stress + APIC matrix ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``."""
+    return (-dt * 4.0 / grid.dx**2) * state.vol0[:, None, None] * tau + state.mass[:, None, None] * state.C
+
+
 def p2g(
-    grid: Grid, st: Stencil, state: State, tau: Float[Array, "N D D"], dt: float
+    grid: Grid,
+    st: Stencil,
+    state: State,
+    tau: Float[Array, "N D D"],
+    dt: float,
+    contact: cpic.Contact | None = None,
 ) -> tuple[Float[Array, " G"], Float[Array, "G D"]]:
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
     ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``. One packed scatter per stencil offset.
+    With a CPIC ``contact``, nodes on the other side of a collider from the particle receive
+    nothing (no mass, momentum or stress): that share goes to the collider.
 
     Returns:
         node masses ``(G,)`` and momenta ``(G, D)`` (flat, C order).
     """
     dim = state.dim
-    affine = (-dt * 4.0 / grid.dx**2) * state.vol0[:, None, None] * tau + state.mass[:, None, None] * state.C
+    affine = affine_momentum(grid, state, tau, dt)
     mv = state.mass[:, None] * state.v
     packed = jnp.zeros((grid.num_nodes, 1 + dim), state.x.dtype)
-    for offset in stencil_offsets(dim):
-        index, weight, dpos = _offset_terms(grid, st, offset)
+    for o, offset in enumerate(stencil_offsets(dim)):
+        index, weight, dpos = offset_terms(grid, st, offset)
+        if contact is not None:
+            weight = jnp.where(contact.incompatible_at(o), 0.0, weight)
         momentum = mv + jnp.einsum("nij,nj->ni", affine, dpos * grid.dx)
         values = weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1)
         packed = packed.at[index].add(values)
+    return packed[:, 0], packed[:, 1:]
+
+
+#: Mass of one rigid boundary particle ("particles" mode), in units of the heaviest material particle.
+BOUNDARY_MASS_RATIO = 1000.0
+
+
+def p2g_boundary(
+    model: Model, state: State, time: Float[Array, ""]
+) -> tuple[Float[Array, " G"], Float[Array, "G D"]] | None:
+    """RP-DiffMPM: scatter the colliders' heavy boundary particles (``"particles"`` mode).
+
+    Each boundary particle carries ``BOUNDARY_MASS_RATIO`` times the heaviest material
+    particle's mass and the collider's velocity at its position; it has no stress. Returns
+    their node masses and momenta (kept apart so gravity acts on the material only), or
+    ``None`` in the other modes.
+    """
+    if model.collision != "particles" or all(b is None for b in model.boundary):
+        return None
+    grid = model.grid
+    dtype = state.x.dtype
+    m_b = BOUNDARY_MASS_RATIO * jax.lax.stop_gradient(jnp.max(state.mass))
+    packed = jnp.zeros((grid.num_nodes, 1 + grid.dim), dtype)
+    lo = jnp.asarray(grid.origin, dtype) + grid.dx
+    hi = jnp.asarray(grid.origin, dtype) + (jnp.asarray(grid.shape, dtype) - 2.0) * grid.dx - 1e-4 * grid.dx
+    for boundary, collider in zip(model.boundary, model.colliders):
+        if boundary is None:
+            continue
+        xb, vb = cpic.boundary_positions(boundary, collider, time)
+        inside = jnp.all((xb >= lo) & (xb <= hi), axis=-1)
+        st = compute_stencil(grid, jnp.clip(xb, lo, hi))
+        mass = jnp.where(inside, m_b, 0.0)
+        for offset in stencil_offsets(grid.dim):
+            index, weight, _ = offset_terms(grid, st, offset)
+            values = (weight * mass)[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
+            packed = packed.at[index].add(values)
     return packed[:, 0], packed[:, 1:]
 
 
@@ -137,14 +179,27 @@ def grid_update(
     mass: Float[Array, " G"],
     momentum: Float[Array, "G D"],
     time: Float[Array, ""],
+    rigid: tuple[Float[Array, " G"], Float[Array, "G D"]] | None = None,
 ) -> Float[Array, "G D"]:
-    """Node velocities: momentum / mass, gravity, collider conditions, domain walls."""
+    """Node velocities: momentum / mass, gravity, collider conditions, domain walls.
+
+    ``rigid``: boundary-particle masses and momenta (``"particles"`` mode); gravity acts on
+    the material's share of a node's mass only.
+    """
     grid = model.grid
     dtype = momentum.dtype
-    occupied = mass > MASS_EPS * grid.dx**grid.dim
-    safe_mass = jnp.where(occupied, mass, 1.0)
+    gravity = model.dt * jnp.asarray(params["gravity"], dtype)
+    if rigid is None:
+        total, material_share = mass, 1.0
+    else:
+        total = mass + rigid[0]
+        momentum = momentum + rigid[1]
+    occupied = total > MASS_EPS * grid.dx**grid.dim
+    safe_mass = jnp.where(occupied, total, 1.0)
     v = jnp.where(occupied[:, None], momentum / safe_mass[:, None], 0.0)
-    v = v + model.dt * jnp.asarray(params["gravity"], dtype)
+    if rigid is not None:
+        material_share = (mass / safe_mass)[:, None]
+    v = v + material_share * gravity
     nodes = node_coordinates(grid, dtype)
     v = apply_grid_colliders(model, params, nodes, v, time)
     v = apply_domain_walls(grid, nodes, v)
@@ -154,9 +209,20 @@ def grid_update(
 def apply_grid_colliders(
     model: Model, params: Params, nodes: Float[Array, "G D"], v: Float[Array, "G D"], time
 ) -> Float[Array, "G D"]:
-    """Grid-level collider condition: nodes inside a collider get the contact projection."""
-    for collider, cp in zip(model.colliders, params["colliders"]):
-        sd, normal = collider.signed_distance(nodes, time)
+    """Grid-level collider condition: nodes inside a collider get the contact projection.
+
+    Planes are analytic and applied in every mode. Other colliders are applied here only in
+    ``"grid"`` mode (GOP-DiffMPM), from their precomputed field (``side * distance`` on the
+    nodes; moving colliders looked up in their rest frame); in ``"cpic"`` mode they act
+    particle-wise in P2G/G2P, in ``"particles"`` mode through boundary particles.
+    """
+    for collider, field, cp in zip(model.colliders, model.fields, params["colliders"]):
+        if isinstance(collider, Plane):
+            sd, normal = collider.signed_distance(nodes, time)
+        elif model.collision == "grid":
+            sd, normal = cpic.node_signed_distance(field, collider, model.grid, nodes, time)
+        else:
+            continue
         inside = sd <= 1e-6 * model.grid.dx
         projected = project_velocity(
             v,
@@ -181,37 +247,85 @@ def apply_domain_walls(grid: Grid, nodes: Float[Array, "G D"], v: Float[Array, "
     return jnp.stack(columns, axis=-1)
 
 
-def g2p(grid: Grid, st: Stencil, grid_v: Float[Array, "G D"]) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]]:
-    """Gather particle velocities and affine matrices ``C = 4/dx^2 sum w v_i (x_i - x_p)^T``."""
+def g2p(
+    grid: Grid, st: Stencil, grid_v: Float[Array, "G D"], ghost: cpic.GhostNodes | None = None
+) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]]:
+    """Gather particle velocities and affine matrices ``C = 4/dx^2 sum w v_i (x_i - x_p)^T``.
+
+    With CPIC ``ghost`` nodes, a particle reads its incompatible nodes' velocity from its own
+    Coulomb-projected velocity instead of the grid (:class:`jaxmpm.cpic.GhostNodes`).
+    """
     n, dim = st.fx.shape
     v = jnp.zeros((n, dim), grid_v.dtype)
     C = jnp.zeros((n, dim, dim), grid_v.dtype)
-    for offset in stencil_offsets(dim):
-        index, weight, dpos = _offset_terms(grid, st, offset)
+    shifts = None if ghost is None else ghost.shifts()
+    for o, offset in enumerate(stencil_offsets(dim)):
+        index, weight, dpos = offset_terms(grid, st, offset)
         vi = grid_v[index]
+        if ghost is not None:
+            vi = ghost.node_velocity(o, grid.dx * dpos, vi, shifts)
         v = v + weight[:, None] * vi
         C = C + (4.0 / grid.dx) * weight[:, None, None] * vi[:, :, None] * dpos[:, None, :]
     return v, C
 
 
-def advect(grid: Grid, x: Float[Array, "N D"], v: Float[Array, "N D"], dt: float) -> Float[Array, "N D"]:
-    """``x + dt v``, clamped to the padded grid so every stencil stays in bounds."""
+def ghost_nodes(
+    model: Model, params: Params, state: State, tau: Float[Array, "N D D"], contact: cpic.Contact | None
+) -> cpic.GhostNodes | None:
+    """The CPIC ghost-node data of this substep (``None`` without particle-wise colliders)."""
+    if contact is None:
+        return None
+    dt = model.dt
+    affine = affine_momentum(model.grid, state, tau, dt)
+    u = state.v + dt * jnp.asarray(params["gravity"], state.v.dtype)
+    cps = [params["colliders"][k] for k in contact.index]
+    return cpic.GhostNodes(
+        contact=contact,
+        u=u,
+        C=state.C,
+        B=affine / state.mass[:, None, None],
+        friction=tuple(jnp.asarray(cp["friction"], u.dtype) for cp in cps),
+        restitution=tuple(jnp.asarray(cp["restitution"], u.dtype) for cp in cps),
+        kinds=tuple(model.colliders[k].contact for k in contact.index),
+    )
+
+
+def advect(
+    grid: Grid, x: Float[Array, "N D"], v: Float[Array, "N D"], dt: float, correction: Float[Array, "N D"] | None = None
+) -> Float[Array, "N D"]:
+    """``x + dt v`` (+ the penetration ``correction``), clamped to the padded grid so every
+    stencil stays in bounds."""
     lo = jnp.asarray(grid.origin, x.dtype) + grid.dx
     hi = jnp.asarray(grid.origin, x.dtype) + (jnp.asarray(grid.shape, x.dtype) - 2.0) * grid.dx - 1e-4 * grid.dx
-    return jnp.clip(x + dt * v, lo, hi)
+    moved = x + dt * v
+    if correction is not None:
+        moved = moved + correction
+    return jnp.clip(moved, lo, hi)
+
+
+def penetration_correction(model: Model, contact: cpic.Contact | None, v: Float[Array, "N D"]):
+    """CPIC penetration correction (a smooth push back to the particle's own side), or ``None``."""
+    if contact is None or model.penetration == 0.0:
+        return None
+    return cpic.penetration_correction(contact, v, model.dt, model.grid.dx, model.penetration)
 
 
 def step(model: Model, params: Params, state: State) -> State:
     """Advance ``state`` by one MPM step of ``model.dt`` seconds."""
-    dt = model.dt
-    st = compute_stencil(model.grid, state.x)
+    dt, grid = model.dt, model.grid
+    st = compute_stencil(grid, state.x)
+    contact = gather_contact(model, st, state)
     F, aux = material_update(model, params, state)
     tau = kirchhoff_stress(model, params, F, state.C, aux)
-    mass, momentum = p2g(model.grid, st, state, tau, dt)
-    grid_v = grid_update(model, params, mass, momentum, state.time)
-    v, C = g2p(model.grid, st, grid_v)
-    x = advect(model.grid, state.x, v, dt)
-    return eqx.tree_at(lambda s: (s.x, s.v, s.C, s.F, s.aux, s.time), state, (x, v, C, F, aux, state.time + dt))
+    mass, momentum = p2g(grid, st, state, tau, dt, contact)
+    rigid = p2g_boundary(model, state, state.time)
+    grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
+    v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, tau, contact))
+    x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
+    tag = state.tag if contact is None else contact.tag
+    return eqx.tree_at(
+        lambda s: (s.x, s.v, s.C, s.F, s.aux, s.tag, s.time), state, (x, v, C, F, aux, tag, state.time + dt)
+    )
 
 
 # --------------------------------------------------------------------------- rollouts
