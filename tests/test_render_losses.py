@@ -126,7 +126,7 @@ def test_silhouette_fit_moves_sphere_to_target(kind):
     delta = jnp.zeros(3, jnp.float32)
     state = opt.init(delta)
     losses = []
-    for i in range(40):
+    for i in range(30):
         delta, state, loss = step(delta, state, jax.random.key(i))
         losses.append(float(loss))
     err = float(jnp.linalg.norm(delta - offset))

@@ -87,7 +87,8 @@ def test_compositing_is_depth_sorted():
 def test_surfel_sphere_area_placement_and_order_independent_silhouette():
     x, r_eff = sphere_particles(R, H)
     cam = look_at((0.0, 0.0, -2.0), (0.0, 0.0, 0.0), fov_deg=40.0, width=64, dtype=jnp.float32)
-    rend = SurfelRenderer.for_particles(x, spacing=H)
+    # K = 1024 of 4139 surfels per chunk: the culled path (exact, checked below)
+    rend = SurfelRenderer.for_particles(x, spacing=H, max_candidates=1024)
     render = jax.jit(rend.render)
     sil = jax.jit(rend.silhouette)
     out = render(jnp.asarray(x, jnp.float32), cam)
@@ -119,3 +120,24 @@ def test_renderers_agree_on_silhouette():
     b = np.asarray(jax.jit(SurfelRenderer.for_particles(x, spacing=h).silhouette)(xj, cam)) > 0.5
     iou = (a & b).sum() / (a | b).sum()
     assert a.sum() > 200 and iou > 0.9, iou
+
+
+def test_culling_is_exact_with_and_without_overflow():
+    """Per-chunk candidate lists give the dense result, also when a chunk overflows K
+    (fallback to all surfels) and for an unordered pixel list."""
+    x, _ = sphere_particles(0.2, 0.04)
+    x = x + np.random.default_rng(0).uniform(-0.01, 0.01, x.shape)
+    cam = look_at((0.15, 0.25, -0.6), (0, 0, 0), fov_deg=40.0, width=24, height=20, dtype=jnp.float32)
+    colors = jax.random.uniform(jax.random.key(0), (x.shape[0], 3), jnp.float32)
+    xj = jnp.asarray(x, jnp.float32)
+    pix = jax.random.permutation(jax.random.key(1), 480)[:150].astype(jnp.int32)
+    outs = []
+    # K = 100: chunks near the top and bottom of the sphere cull (they meet fewer boxes),
+    # chunks across its middle overflow and take the dense path
+    for k in (0, 100):
+        rend = SurfelRenderer.for_particles(x, spacing=0.04, max_candidates=k, chunk_size=24)
+        outs.append(jax.jit(lambda x, p: rend.render(x, cam, colors, pixels=p))(xj, pix))
+    np.testing.assert_allclose(np.asarray(outs[1].rgb), np.asarray(outs[0].rgb), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(outs[1].alpha), np.asarray(outs[0].alpha), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(outs[1].depth), np.asarray(outs[0].depth), atol=1e-5)
+    assert 0.2 < float(outs[0].alpha.mean()) < 0.8

@@ -119,3 +119,14 @@ def test_volume_density_mode_and_validation():
         lev.render(jnp.zeros((5, 2), jnp.float32), cam)
     with pytest.raises(ObservationError, match="colors"):
         lev.render(jnp.zeros((5, 3), jnp.float32), cam, jnp.zeros((4, 3), jnp.float32))
+
+
+def test_estimate_spacing_uses_first_frame_of_a_trajectory():
+    from jaxmpm.render import estimate_spacing
+
+    x, _ = sphere_particles(0.2, 0.05)
+    traj = np.stack([x, x + 0.001])  # frames close together must not look like neighbours
+    assert estimate_spacing(x) == pytest.approx(0.05)
+    assert estimate_spacing(traj) == pytest.approx(0.05)
+    rend = VolumeRenderer.for_particles(traj)
+    assert rend.dx == pytest.approx(0.05) and rend.particle_volume == pytest.approx(0.05**3)

@@ -33,12 +33,20 @@ The opacity is ``α = min(α_max, o·exp(−ρ/2))`` with ``ρ = u² + v²``, ze
   silhouette by one to two pixels when particles are smaller than pixels.
 * ``None``: no filter.
 
-**Compositing (tile-free, "dense sorted").** The surfels are sorted once per view by the
-depth of their centres; for a chunk of pixels every pixel–surfel pair is evaluated and
+**Compositing (tile-free, sorted).** The surfels are sorted once per view by the depth of
+their centres; for a chunk of pixels the pixel–surfel opacities are evaluated and
 ``C = Σ_i c_i α_i Π_{j<i}(1 − α_j) + T·background`` is computed with a cumulative sum of
 ``log(1 − α)`` along the sorted axis. The result is exact up to the per-primitive sort
-(the same approximation as 2DGS); it costs O(pixels × surfels) and memory
-O(chunk × surfels). No early termination (it changes colours by < 1e-4).
+(the same approximation as 2DGS). No early termination (it changes colours by < 1e-4).
+
+**Culling per chunk.** Every surfel gets a conservative pixel box outside which its α is
+below ``α_min`` (the projection of the square ``|u|, |v| ≤ c`` with
+``o·exp(−c²/2) = α_min``, widened by the filter). Chunks are narrow bands of rows (pixel
+lists are processed in raster order); a chunk composites only the first K surfels, in
+depth order, whose box meets it (``lax.top_k`` on the sorted ranks), and falls back to all
+N surfels through ``lax.cond`` when more than K qualify. Since the dropped surfels
+contribute α = 0 exactly, the image is the same as without culling, at a cost of
+O(pixels × K) instead of O(pixels × N). K defaults to N/4 from 8192 surfels on.
 
 **Silhouette.** ``1 − Π_i (1 − α_i)`` is independent of the order:
 :meth:`SurfelRenderer.silhouette` computes it without sorting and without colours.
@@ -92,7 +100,11 @@ class SurfelRenderer(AbstractRenderer):
         lowpass: anti-aliasing filter, ``"mip"`` (default), ``"2dgs"`` or ``None``.
         filter_variance: variance (px²) of the ``"mip"`` filter.
         background: RGB background colour.
-        chunk_size: pixels per chunk; ``None`` chooses about 2²¹ pixel–surfel pairs.
+        chunk_size: pixels per chunk; ``None`` chooses about 2²¹ pixel–surfel pairs
+            (and, when culling, about one image row's worth of the requested pixels).
+        max_candidates: K, the number of surfels a chunk of pixels composites when
+            culling (see the module docstring); ``None``: ``N // 4`` for N ≥ 8192
+            surfels, no culling below; ``0``: never cull.
         near: surfels (and hits) closer than this to the camera plane are ignored.
     """
 
@@ -104,6 +116,7 @@ class SurfelRenderer(AbstractRenderer):
     filter_variance: float = eqx.field(static=True, default=0.1)
     background: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0))
     chunk_size: int | None = eqx.field(static=True, default=None)
+    max_candidates: int | None = eqx.field(static=True, default=None)
     near: float = eqx.field(static=True, default=1e-3)
 
     def __check_init__(self):
@@ -131,10 +144,106 @@ class SurfelRenderer(AbstractRenderer):
         f = cls.SCALE_FACTOR if scale_factor is None else float(scale_factor)
         return cls(scale=f * h, **options)
 
-    def _chunk(self, n: int) -> int:
+    def _num_candidates(self, n: int) -> int:
+        """K (static); K >= n means no culling."""
+        if self.alpha_min <= 0.0 or self.max_candidates == 0:
+            return n
+        if self.max_candidates is None:
+            return n // 4 if n >= 8192 else n
+        return min(int(self.max_candidates), n)
+
+    def _chunk(self, n: int, num_pixels: int, height: int) -> int:
+        """Pixels per chunk: about 2²¹ pixel–surfel pairs; when culling, also about one
+        image row's worth of the requested pixels (a narrow band of rows)."""
         if self.chunk_size is not None:
             return int(self.chunk_size)
-        return int(min(4096, max(16, (1 << 21) // max(n, 1))))
+        k = self._num_candidates(n)
+        c = (1 << 21) // max(k, 1)
+        if k < n:
+            c = min(c, max(num_pixels // height, 1))
+        return int(min(4096, max(16, c)))
+
+    def _screen_boxes(self, positions, camera: Camera, au, av, opac, footprint):
+        """Conservative pixel-space boxes ``(N, 4)`` = (x0, x1, y0, y1) outside which a
+        surfel's α is below ``alpha_min`` (no gradient flows through them)."""
+        sg = jax.lax.stop_gradient
+        positions, au, av, opac, footprint = map(sg, (positions, au, av, opac, footprint))
+        dtype = positions.dtype
+        amin = self.alpha_min
+        if self.lowpass == "mip":
+            o = opac * footprint
+            c = jnp.sqrt(jnp.maximum(2.0 * jnp.log(jnp.maximum(o, 1e-30) / amin), 0.0) / footprint)
+        else:
+            o = opac
+            c = jnp.sqrt(jnp.maximum(2.0 * jnp.log(jnp.maximum(o, 1e-30) / amin), 0.0))
+        corners = []
+        for su, sv in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            corners.append(positions + c[:, None] * (su * au + sv * av))
+        uv, z = camera.project(jnp.stack(corners, axis=1))  # (N, 4, 2), (N, 4)
+        lo = jnp.min(uv, axis=1) - 0.5
+        hi = jnp.max(uv, axis=1) + 0.5
+        if self.lowpass == "2dgs":  # the pixel-space filter: a disc around the centre
+            ctr, _ = camera.project(positions)
+            r2 = jnp.sqrt(jnp.maximum(jnp.log(jnp.maximum(o, 1e-30) / amin), 0.0))[:, None] + 0.5
+            lo = jnp.minimum(lo, ctr - r2)
+            hi = jnp.maximum(hi, ctr + r2)
+        big = jnp.asarray(1e9, dtype)
+        behind = jnp.any(z <= self.near, axis=1)[:, None]
+        lo = jnp.where(behind, -big, lo)
+        hi = jnp.where(behind, big, hi)
+        invisible = (o < amin)[:, None]
+        lo = jnp.where(invisible, big, lo)
+        hi = jnp.where(invisible, -big, hi)
+        return jnp.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], axis=-1)
+
+    def _pixel_loop(self, pair_fn, surfels, boxes, camera: Camera, pixels):
+        """Run ``pair_fn(surfels, pix) -> outputs (C, ...)`` over pixel chunks.
+
+        ``surfels`` is a tuple of pytrees of ``(N, ...)`` arrays in compositing order whose
+        second element is the opacity ``(N,)``. With culling, each chunk keeps the first K surfels (in
+        that order) whose box meets the chunk's pixels, zeroing the opacity of unused
+        slots, and falls back to all N surfels when more than K qualify — so the result
+        is always exact.
+        """
+        n = surfels[1].shape[0]
+        k = self._num_candidates(n)
+        num_pixels = camera.num_pixels if pixels is None else int(np.shape(pixels)[0])
+        chunk = self._chunk(n, num_pixels, camera.height)
+        if k >= n:
+            return map_pixel_chunks(lambda pix: pair_fn(surfels, pix), camera, pixels, chunk)
+        unsort = None
+        if pixels is not None:  # raster order keeps each chunk in a narrow band of rows
+            pixels = jnp.asarray(pixels).astype(jnp.int32)
+            order = jnp.argsort(pixels)
+            unsort = jnp.argsort(order)
+            pixels = pixels[order]
+        dtype = boxes.dtype
+        rank = n - jnp.arange(n, dtype=jnp.int32)
+
+        def chunk_fn(pix):
+            row = pix // camera.width
+            col = pix - row * camera.width
+            x0 = jnp.min(col).astype(dtype) + 0.5
+            x1 = jnp.max(col).astype(dtype) + 0.5
+            y0 = jnp.min(row).astype(dtype) + 0.5
+            y1 = jnp.max(row).astype(dtype) + 0.5
+            hit = (boxes[:, 1] >= x0) & (boxes[:, 0] <= x1) & (boxes[:, 3] >= y0) & (boxes[:, 2] <= y1)
+            _, idx = jax.lax.top_k(jnp.where(hit, rank, 0), k)
+
+            def culled(pix):
+                sub = jax.tree_util.tree_map(lambda a: a[idx], surfels)
+                opac = sub[1] * hit[idx].astype(sub[1].dtype)
+                return pair_fn(sub[:1] + (opac,) + sub[2:], pix)
+
+            def dense(pix):
+                return pair_fn(surfels, pix)
+
+            return jax.lax.cond(jnp.sum(hit.astype(jnp.int32)) <= k, culled, dense, pix)
+
+        out = map_pixel_chunks(chunk_fn, camera, pixels, chunk)
+        if unsort is not None:
+            out = jax.tree_util.tree_map(lambda a: a[unsort], out)
+        return out
 
     # --- surfel geometry --------------------------------------------------------------
 
@@ -183,59 +292,63 @@ class SurfelRenderer(AbstractRenderer):
         return au, av
 
     def _surfel_terms(self, positions, camera, au, av):
-        """Camera-space columns m_u, m_v, m_p (N, 3) and projected centres (N, 2)."""
+        """Per-surfel quantities for the pixel loop, a tuple of ``(N, ...)`` arrays:
+        ``adj (N, 3, 3)`` the adjugate of M, ``det (N,)``, the edge-on threshold
+        ``(N,)``, projected centres ``(N, 2)``, the mip footprint factor ``(N,)`` and the
+        centres' depth ``(N,)``."""
         R = camera.rotation
         mu = au @ R
         mv = av @ R
         mp = (positions - camera.position) @ R
+        # adj(M) rows: so that adj(M)·M = det(M)·I for M = [m_u | m_v | m_p]
+        n_uv = jnp.cross(mu, mv)
+        adj = jnp.stack([jnp.cross(mv, mp), jnp.cross(mp, mu), n_uv], axis=1)
+        det = jnp.sum(n_uv * mp, axis=-1)
+        thr = _COS_MIN * jnp.sqrt(jnp.sum(n_uv * n_uv, axis=-1) + 1e-30)
         centre, _ = camera.project(positions)
         # local area scale of the (u, v) -> pixel map at the centre: fx·fy·det(M)/z³ px²
         # per unit (u, v) area, i.e. the squared pixel size of one unit of the surfel
-        z = mp[:, 2]
-        z_safe = jnp.where(z > self.near, z, self.near)
-        detM = jnp.sum(jnp.cross(mu, mv) * mp, axis=-1)
-        s2 = camera.K[0, 0] * camera.K[1, 1] * jnp.abs(detM) / z_safe**3
+        zc = mp[:, 2]
+        z_safe = jnp.where(zc > self.near, zc, self.near)
+        s2 = camera.K[0, 0] * camera.K[1, 1] * jnp.abs(det) / z_safe**3
         footprint = s2 / (s2 + self.filter_variance)  # mip low-pass: energy-preserving
-        return mu, mv, mp, centre, footprint
+        return adj, det, thr, centre, footprint, zc
 
     def _alpha_and_depth(self, terms, opac, camera: Camera, pix):
-        """Per pixel–surfel opacity ``(C, N)`` and hit depth ``(C, N)`` for pixels ``pix``."""
-        mu, mv, mp, centre, footprint = terms
-        dtype = mu.dtype
+        """Per pixel–surfel opacity ``(C, N)`` and hit depth ``(C, N)`` for pixels ``pix``.
+
+        With ``r = (x̃, ỹ, 1)`` the pixel's normalised ray, ``h = adj(M)·r`` is
+        ``det(M)·M⁻¹r ∝ (u, v, 1)`` — the cross product ``k × l`` of 2DGS — so
+        ``u = h₀/h₂``, ``v = h₁/h₂`` and the hit's depth is ``det(M)/h₂``.
+        """
+        adj, det, thr, centre, footprint, zc = terms
+        dtype = adj.dtype
         xy = camera.pixel_coordinates(pix)  # (C, 2)
         r = camera._camera_dirs(xy)  # (C, 3), z = 1
         xt, yt = r[:, 0:1], r[:, 1:2]
-        # rows of M: M1 = (mu.x, mv.x, mp.x), M2 = (.y), M3 = (.z)
-        k0 = xt * mu[:, 2] - mu[:, 0]
-        k1 = xt * mv[:, 2] - mv[:, 0]
-        k2 = xt * mp[:, 2] - mp[:, 0]
-        l0 = yt * mu[:, 2] - mu[:, 1]
-        l1 = yt * mv[:, 2] - mv[:, 1]
-        l2 = yt * mp[:, 2] - mp[:, 1]
-        den = k0 * l1 - k1 * l0
-        cr = jnp.cross(mu, mv)  # (N, 3)
-        cr_norm = jnp.sqrt(jnp.sum(cr * cr, axis=-1) + 1e-30)
+        h0 = xt * adj[:, 0, 0] + yt * adj[:, 0, 1] + adj[:, 0, 2]
+        h1 = xt * adj[:, 1, 0] + yt * adj[:, 1, 1] + adj[:, 1, 2]
+        h2 = xt * adj[:, 2, 0] + yt * adj[:, 2, 1] + adj[:, 2, 2]  # = r·(m_u × m_v)
         r_norm = jnp.sqrt(jnp.sum(r * r, axis=-1, keepdims=True))
-        ok = jnp.abs(den) > _COS_MIN * r_norm * cr_norm
-        den_safe = jnp.where(ok, den, 1.0)
-        u = jnp.where(ok, (k1 * l2 - k2 * l1) / den_safe, 0.0)
-        v = jnp.where(ok, (k2 * l0 - k0 * l2) / den_safe, 0.0)
+        ok = jnp.abs(h2) > thr * r_norm  # not edge-on
+        inv = 1.0 / jnp.where(ok, h2, 1.0)
+        u = h0 * inv
+        v = h1 * inv
         rho3 = jnp.where(ok, jnp.minimum(u * u + v * v, _RHO_MAX), _RHO_MAX)
-        z_hit = u * mu[:, 2] + v * mv[:, 2] + mp[:, 2]
-        z_ctr = jnp.broadcast_to(mp[:, 2], z_hit.shape)
+        z_hit = jnp.where(ok, det * inv, zc)
         if self.lowpass == "2dgs":
             dxy = xy[:, None, :] - centre[None, :, :]
             rho2 = jnp.minimum(2.0 * jnp.sum(dxy * dxy, axis=-1), _RHO_MAX)  # σ² = 1/2 px²
             use3 = rho3 <= rho2
             rho = jnp.where(use3, rho3, rho2)
-            z = jnp.where(use3, z_hit, z_ctr)
+            z = jnp.where(use3, z_hit, zc)
         elif self.lowpass == "mip":
             rho, z = rho3 * footprint, z_hit
             opac = opac * footprint
         else:
             rho, z = rho3, z_hit
         alpha = jnp.minimum(self.alpha_max, opac * jnp.exp(-0.5 * rho))
-        valid = (alpha >= self.alpha_min) & (z > self.near) & (mp[:, 2] > self.near)
+        valid = (alpha >= self.alpha_min) & (z > self.near) & (zc > self.near)
         alpha = jnp.where(valid, alpha, jnp.zeros((), dtype))
         return alpha, z
 
@@ -279,12 +392,15 @@ class SurfelRenderer(AbstractRenderer):
         au, av = self.surfel_axes(positions, camera, normals=normals, F=F, scales=scales)
         opac = self._opacities(positions, opacities)
         terms = self._surfel_terms(positions, camera, au, av)
-        order = jnp.argsort(jax.lax.stop_gradient(terms[2][:, 2]))
-        terms = tuple(t[order] for t in terms)
-        opac, colors = opac[order], colors[order]
+        boxes = self._screen_boxes(positions, camera, au, av, opac, terms[4])
+        order = jnp.argsort(jax.lax.stop_gradient(terms[-1]))  # centres' depth
+        surfels = (terms, opac, colors, boxes)
+        surfels = jax.tree_util.tree_map(lambda a: a[order], surfels)
+        terms, opac, colors, boxes = surfels
         bg = jnp.asarray(self.background, dtype=dtype)
 
-        def chunk_fn(pix):
+        def pair_fn(surf, pix):
+            terms, opac, colors = surf
             alpha, z = self._alpha_and_depth(terms, opac, camera, pix)
             log_keep = jnp.log1p(-alpha)
             csum = jnp.cumsum(log_keep, axis=-1)
@@ -295,7 +411,7 @@ class SurfelRenderer(AbstractRenderer):
             depth = safe_divide(jnp.sum(w * z, axis=-1), acc)
             return Rendered(rgb, acc, depth)
 
-        out = map_pixel_chunks(chunk_fn, camera, pixels, self._chunk(positions.shape[0]))
+        out = self._pixel_loop(pair_fn, (terms, opac, colors), boxes, camera, pixels)
         return _finish(out, camera, pixels)
 
     def silhouette(
@@ -318,12 +434,14 @@ class SurfelRenderer(AbstractRenderer):
         au, av = self.surfel_axes(positions, camera, normals=normals, F=F, scales=scales)
         opac = self._opacities(positions, opacities)
         terms = self._surfel_terms(positions, camera, au, av)
+        boxes = self._screen_boxes(positions, camera, au, av, opac, terms[4])
 
-        def chunk_fn(pix):
+        def pair_fn(surf, pix):
+            terms, opac = surf
             alpha, _ = self._alpha_and_depth(terms, opac, camera, pix)
             return -jnp.expm1(jnp.sum(jnp.log1p(-alpha), axis=-1))
 
-        out = map_pixel_chunks(chunk_fn, camera, pixels, self._chunk(positions.shape[0]))
+        out = self._pixel_loop(pair_fn, (terms, opac), boxes, camera, pixels)
         if pixels is None:
             return out.reshape(camera.height, camera.width)
         return out

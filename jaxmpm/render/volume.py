@@ -142,8 +142,8 @@ def _prepare(positions, camera: Camera, colors):
 def map_pixel_chunks(fn, camera: Camera, pixels, chunk_size: int):
     """Apply ``fn(pixel_indices (C,)) -> pytree of (C, ...)`` over all requested pixels.
 
-    Pixels are split into chunks of ``chunk_size`` (the last one padded with pixel 0 and
-    trimmed afterwards); chunks run sequentially under ``lax.map`` and each chunk is
+    Pixels are split into chunks of ``chunk_size`` (the last one padded with its last
+    pixel and trimmed afterwards); chunks run sequentially under ``lax.map`` and each chunk is
     ``jax.checkpoint``-ed, so reverse mode keeps only one chunk's intermediates alive.
     Returns arrays of shape ``(P, ...)``.
     """
@@ -157,8 +157,8 @@ def map_pixel_chunks(fn, camera: Camera, pixels, chunk_size: int):
     chunk = max(1, min(int(chunk_size), num))
     n_chunks = -(-num // chunk)
     pad = n_chunks * chunk - num
-    if pad:
-        pixels = jnp.concatenate([pixels, jnp.zeros((pad,), jnp.int32)])
+    if pad:  # repeat the last pixel, so a chunk's pixels stay in a narrow band of rows
+        pixels = jnp.concatenate([pixels, jnp.broadcast_to(pixels[-1], (pad,))])
     out = jax.lax.map(jax.checkpoint(fn), pixels.reshape(n_chunks, chunk))
     return jax.tree_util.tree_map(lambda a: a.reshape((n_chunks * chunk,) + a.shape[2:])[:num], out)
 
@@ -181,11 +181,15 @@ def safe_divide(num, den, eps=_EPS):
 def estimate_spacing(positions, max_samples: int = 2048, seed: int = 0) -> float:
     """Median nearest-neighbour distance of a particle set (NumPy, concrete input).
 
+    ``positions`` is ``(N, 3)`` or a trajectory ``(T, N, 3)`` (then frame 0 is used).
     Exact for particles on a lattice (what body sampling produces); for a random
     jitter it underestimates the lattice spacing somewhat — pass the spacing (or the
     particle volumes) explicitly when it is known.
     """
-    x = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    x = np.asarray(positions, dtype=np.float64)
+    if x.ndim > 2:
+        x = x.reshape((-1,) + x.shape[-2:])[0]
+    x = x.reshape(-1, 3)
     x = x[np.all(np.isfinite(x), axis=1)]
     if x.shape[0] < 2:
         raise ObservationError("need at least two finite particles to estimate their spacing")
@@ -279,7 +283,7 @@ class VolumeRenderer(AbstractRenderer):
         x = x[np.all(np.isfinite(x), axis=1)]
         if x.shape[0] == 0:
             raise ObservationError("no finite particle positions to build a render grid from")
-        h = estimate_spacing(x) if spacing is None else float(spacing)
+        h = estimate_spacing(positions) if spacing is None else float(spacing)
         if not h > 0:
             raise ObservationError(f"particle spacing must be positive, got {h}")
         dx = h if dx is None else float(dx)
