@@ -59,7 +59,6 @@ normals, and optionally deformed by the particle's deformation gradient ``F``
 
 from __future__ import annotations
 
-import math
 
 import equinox as eqx
 import jax
