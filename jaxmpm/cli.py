@@ -104,25 +104,38 @@ def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None
 
 
 def cmd_fit(args) -> int:
-    from .fit import fit
+    from .fit import default_names, fit_scene, parse_weights
     from .observe import load_observation
     from .scene import load_scene
 
     _check_output(args.out)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
-    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else _default_names(scene)
-    print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames)", file=sys.stderr)
+    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else default_names(scene.model)
+    weights = parse_weights(args.weights)
+    say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames) with {args.method}",
+          file=sys.stderr)
 
     def progress(i, loss):
-        print(f"  iteration {i:3d}  loss {loss:.4e} m^2", file=sys.stderr)
+        if not args.quiet:
+            print(f"  iteration {i:3d}  loss {loss:.4e}", file=sys.stderr, flush=True)
 
-    result = fit(scene.model, scene.params, obs, names, max_steps=args.max_steps, progress=progress)
+    result = fit_scene(
+        scene, obs, names, method=args.method, stages=None if args.stages == "single" else "auto",
+        weights=weights, max_steps=args.max_steps, progress=progress, log=say, renderer=args.renderer,
+        num_pixels=args.pixels, velocity_until=args.velocity_until,
+    )
     payload = result.to_json()
     _write_json(Path(args.out), payload)
     print(_format_table(result))
-    print(result.message + f" ({result.seconds:.1f} s); wrote {args.out}")
-    return 0 if result.converged else 1
+    if result.converged:
+        print(result.message + f" ({result.seconds:.1f} s); wrote {args.out}")
+        return 0
+    print(f"WARNING: the fit did not converge: {result.message} ({result.seconds:.1f} s); wrote {args.out} "
+          "with \"converged\": false", file=sys.stderr)
+    print(f"NOT CONVERGED: {result.message}; wrote {args.out}")
+    return 1
 
 
 def _default_names(scene) -> list[str]:
@@ -218,7 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("observations", help="observation file (.npz)")
     p.add_argument("--params", default=None, help="comma-separated parameter names (default: the material's)")
     p.add_argument("--out", default="fit.json", help="result file (default: fit.json)")
-    p.add_argument("--max-steps", type=int, default=40, help="maximum Levenberg-Marquardt iterations")
+    p.add_argument("--method", choices=("lm", "adam", "bfgs"), default="lm",
+                   help="optimiser: Levenberg-Marquardt (default), Adam (PAC-NeRF's reference) or BFGS")
+    p.add_argument("--stages", choices=("auto", "single"), default="auto",
+                   help="auto: velocity on pre-contact frames, then a growing frame window (PAC-NeRF); single: one stage")
+    p.add_argument("--max-steps", type=int, default=None, help="maximum iterations per stage (default: 40 LM, 60 BFGS, 100 Adam)")
+    p.add_argument("--weights", default=None, help="loss weights, e.g. tracks=1,silhouette=1,rgb=0.1,probes=1")
+    p.add_argument("--renderer", choices=("volume", "surfels"), default="volume", help="renderer for image losses")
+    p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame for image losses")
+    p.add_argument("--velocity-until", type=float, default=None,
+                   help="last observed time (s) of the velocity stage (default: detected contact)")
+    p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.set_defaults(func=cmd_fit)
 

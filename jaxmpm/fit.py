@@ -1,4 +1,26 @@
-"""Parameter identification from tracked points (Levenberg–Marquardt, forward-mode Jacobians).
+"""Parameter identification: one call, three optimisers, staged like PAC-NeRF/GIC.
+
+``fit(model, params, observation, names, method="lm" | "adam" | "bfgs")`` minimises the
+weighted loss of :mod:`jaxmpm.losses` (tracks, silhouettes, masked RGB, probes):
+
+* ``"lm"`` (default): Levenberg–Marquardt (``optimistix``) on the residual vector with
+  forward-mode Jacobians (one JVP per parameter; no reverse-mode tape).
+* ``"adam"``: the reference, PAC-NeRF's optimiser: Adam (``optax``) with PAC-NeRF's
+  per-parameter learning rates in its parameter spaces (:data:`ADAM_LEARNING_RATES`), a
+  fresh random pixel batch per iteration for image terms, and the lowest-loss iterate
+  returned (GIC). The gradient is forward mode by default (``grad="fwd"``).
+* ``"bfgs"``: ``optimistix.BFGS`` on the scalar loss (forward-mode gradients).
+
+**Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone from
+the pre-contact frames, when a ``velocity`` is among the names; (2) the other parameters on
+the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A stage whose
+rollout is unhealthy (NaN, CFL number above ``cfl_limit``) at its starting point, or whose
+solver stalls against unhealthy trial points, halves dt (doubles the substeps) and restarts
+from the best point so far, up to ``max_dt_halvings`` times in all.
+
+**Uncertainty**: standard deviations from the Gauss–Newton covariance
+``s² (JᵀJ)⁻¹`` at the optimum (``s² = RSS / (m − p)``), mapped to physical units; each
+parameter's from the last stage that fitted it.
 
 Parameters are named (``"mu"``, ``"kappa"``, ``"E"``, ``"nu"``, ``"yield_stress"``,
 ``"eta"``, ``"friction_angle"``, ``"density"``, ``"velocity"``, ``"gravity"``,
@@ -9,10 +31,11 @@ degrees for the friction angle; linear otherwise.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import equinox as eqx
 import jax
@@ -22,14 +45,67 @@ import numpy as np
 import optimistix as optx
 
 from .errors import JaxmpmError, ObservationError
+from .losses import Objective, build_objective, chamfer_residuals, frame_interpolation, frames_needed
 from .model import Model, Params
 from .observe import Observation
-from .step import simulate
+
+__all__ = [
+    "LOG10_PARAMS",
+    "NU_BOUNDS",
+    "METHODS",
+    "ADAM_LEARNING_RATES",
+    "FitError",
+    "FitResult",
+    "Stage",
+    "fit",
+    "fit_scene",
+    "plan_stages",
+    "contact_time",
+    "check_scene_compatible",
+    "default_names",
+    "parse_weights",
+    "resolve_name",
+    "get_param",
+    "set_param",
+    "to_unconstrained",
+    "from_unconstrained",
+    "apply_unconstrained",
+    "track_residual_fn",
+    # re-exported from jaxmpm.losses for compatibility
+    "frame_interpolation",
+    "frames_needed",
+    "chamfer_residuals",
+]
 
 LOG10_PARAMS = frozenset({"E", "mu", "kappa", "yield_stress", "eta", "density"})
 #: Poisson ratio bounds of the tanh map nu = mid + half * tanh((y - mid) / half).
 NU_BOUNDS = (-0.45, 0.495)
 
+METHODS = ("lm", "adam", "bfgs")
+
+#: PAC-NeRF's dynamic-stage Adam learning rates (configs' ``physical_params``; anchors §1.5),
+#: in the optimisation space (log10 units for log parameters, degrees for the friction
+#: angle). ``velocity`` (GIC's velocity stage: 1e-2…5e-2 m/s), collider ``friction``,
+#: ``restitution`` and ``gravity`` are jaxmpm's choices.
+ADAM_LEARNING_RATES = {
+    "E": 0.1,
+    "nu": 0.01,
+    "mu": 0.1,
+    "kappa": 0.1,
+    "yield_stress": 0.1,
+    "eta": 0.05,
+    "friction_angle": 1.0,
+    "density": 0.1,
+    "velocity": 0.05,
+    "friction": 0.02,
+    "restitution": 0.02,
+    "gravity": 0.1,
+}
+
+#: Default iterations per stage and method (PAC-NeRF: 50 Adam iterations on the early
+#: window, 100 on all frames).
+DEFAULT_MAX_STEPS = {"lm": 40, "bfgs": 60, "adam": 100}
+ADAM_WINDOW_STEPS = 50
 
 #: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
 #: which the fit stops at a stationary point.
@@ -49,6 +125,8 @@ def resolve_name(model: Model, params: Params, name: str) -> tuple:
     ``"mu"`` names the only body that has ``mu``; ``"body1.mu"`` a given body;
     ``"floor.friction"`` a collider's parameter; ``"gravity"`` the gravity vector.
     """
+    if not isinstance(name, str) or not name:
+        raise JaxmpmError(f"parameter names must be non-empty strings, got {name!r}")
     if name == "gravity":
         return ("gravity",)
     if "." in name:
@@ -56,7 +134,10 @@ def resolve_name(model: Model, params: Params, name: str) -> tuple:
         for k, body in enumerate(model.bodies):
             if body.name == owner:
                 if leaf not in params["bodies"][k]:
-                    raise JaxmpmError(f"parameter {name!r}: body {owner!r} has no parameter {leaf!r}")
+                    raise JaxmpmError(
+                        f"parameter {name!r}: body {owner!r} ({_material_name(body)}) has no parameter {leaf!r}; "
+                        f"it has: {', '.join(sorted(params['bodies'][k]))}"
+                    )
                 return ("bodies", k, leaf)
         for k, collider in enumerate(model.colliders):
             if collider.name == owner:
@@ -67,11 +148,18 @@ def resolve_name(model: Model, params: Params, name: str) -> tuple:
     owners = [k for k, bp in enumerate(params["bodies"]) if name in bp]
     if not owners:
         available = sorted({key for bp in params["bodies"] for key in bp} | {"gravity"})
-        raise JaxmpmError(f"unknown parameter {name!r}; this scene has: {', '.join(available)}")
+        materials = ", ".join(sorted({_material_name(b) for b in model.bodies}))
+        raise JaxmpmError(
+            f"unknown parameter {name!r} for this scene's material ({materials}); this scene has: {', '.join(available)}"
+        )
     if len(owners) > 1:
         choices = ", ".join(f"{model.bodies[k].name}.{name}" for k in owners)
         raise JaxmpmError(f"parameter {name!r} is ambiguous in a scene with several bodies; use one of {choices}")
     return ("bodies", owners[0], name)
+
+
+def _material_name(body) -> str:
+    return getattr(type(body.material), "name", type(body.material).__name__)
 
 
 def get_param(params: Params, path: tuple):
@@ -132,30 +220,16 @@ def apply_unconstrained(model: Model, params: Params, names, y: dict) -> Params:
     return params
 
 
+def default_names(model: Model) -> list[str]:
+    """The material parameters that PAC-NeRF fits for a one-body scene's material."""
+    from .constitutive import MATERIALS
+
+    if len(model.bodies) != 1:
+        raise JaxmpmError("this scene has several bodies: name the parameters to fit")
+    return list(MATERIALS[_material_name(model.bodies[0])].required)
+
+
 # --------------------------------------------------------------------------- track residuals
-
-
-def frame_interpolation(frame_dt: float, times: np.ndarray, num_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame indices ``i0, i1`` and weights ``a`` so that ``x(t) = (1-a) x[i0] + a x[i1]``."""
-    s = np.asarray(times, float) / frame_dt
-    i0 = np.clip(np.floor(s + 1e-6).astype(int), 0, num_frames - 1)
-    i1 = np.minimum(i0 + 1, num_frames - 1)
-    a = np.where(i1 > i0, np.clip(s - i0, 0.0, 1.0), 0.0)
-    a = np.where(a < 1e-6, 0.0, a)
-    return i0, i1, a
-
-
-def frames_needed(model: Model, times: np.ndarray) -> int:
-    return max(2, int(math.ceil(float(np.max(times)) / model.frame_dt - 1e-6)) + 1)
-
-
-def chamfer_residuals(sim, obs, valid):
-    """Per-point nearest-neighbour distances in both directions (set-to-set, ``(M + N,)``)."""
-    d2 = jnp.sum((obs[:, None, :] - sim[None, :, :]) ** 2, axis=-1)
-    d2 = jnp.where(valid[:, None], d2, jnp.inf)
-    obs_to_sim = jnp.where(valid, jnp.min(d2, axis=1), 0.0)
-    sim_to_obs = jnp.min(d2, axis=0)
-    return jnp.sqrt(jnp.concatenate([obs_to_sim, sim_to_obs]) + 1e-12)
 
 
 def track_residual_fn(model: Model, observation: Observation, checkpoint: str | None = "nested"):
@@ -164,41 +238,119 @@ def track_residual_fn(model: Model, observation: Observation, checkpoint: str | 
     With ``point_ids == "particles"`` the residual is the position error of every observed
     point (NaN points contribute 0); otherwise it is the symmetric Chamfer distance per
     frame. Residuals are scaled so that ``sum(r**2)`` is the mean squared error in m^2.
+    (A thin wrapper of :func:`jaxmpm.losses.build_objective` with tracks only.)
     """
     if observation.positions is None:
         raise ObservationError("the observation has no 'positions' (tracks) to fit")
-    obs = np.asarray(observation.positions, float)
-    T, N, D = obs.shape
-    if D != model.dim:
-        raise ObservationError(f"observed positions are {D}-D but the scene is {model.dim}-D")
-    by_id = observation.point_ids == "particles"
-    if by_id and N != model.num_particles:
-        raise ObservationError(
-            f"observation has point_ids='particles' with {N} points but the scene has {model.num_particles} particles"
-        )
+    weights = {"tracks": 1.0, "silhouette": 0.0, "rgb": 0.0, "probes": 0.0}
+    objective = build_objective(model, observation, weights=weights, checkpoint=checkpoint, cfl_limit=math.inf)
+    return lambda params: objective._residuals_of(objective.simulate(params))
+
+
+# --------------------------------------------------------------------------- stages
+
+
+@dataclass
+class Stage:
+    """One stage of a staged fit.
+
+    Attributes:
+        names: the parameters fitted in this stage.
+        until: last observed time used (seconds); None for all.
+        label: a short description (printed and written to fit.json).
+        method: optimiser of this stage (default: the fit's).
+        max_steps: iteration cap of this stage (default: the fit's).
+    """
+
+    names: list[str]
+    until: float | None = None
+    label: str = ""
+    method: str | None = None
+    max_steps: int | None = None
+
+
+def _velocity_dispersion(x: np.ndarray) -> np.ndarray:
+    """Per interval, how far the displacements depart from a common translation (95th
+    percentile of ``|d_p − median d|``): 0 in free flight, large after contact."""
+    d = np.diff(x, axis=0)
+    dev = np.linalg.norm(d - np.nanmedian(d, axis=1, keepdims=True), axis=-1)
+    dev = np.where(np.isfinite(dev), dev, np.nan)
+    return np.nanpercentile(dev, 95, axis=1)
+
+
+def contact_time(model: Model, params: Params, observation: Observation, *, tol: float | None = None) -> float | None:
+    """The last observed time before the body first touches anything (a collider, a wall).
+
+    In free flight every particle moves with one velocity (no stress), so contact shows
+    as the first frame interval whose displacements depart from a common translation by
+    more than ``tol`` (default 5 % of a grid cell per frame, 95th percentile over the
+    points). Uses the observed tracks when they are per-particle, else a rollout at
+    ``params`` (the initial guess). Returns None when nothing touches within the data, and
+    0.0 when the body is in contact from the start.
+    """
     times = np.asarray(observation.times, float)
+    tol = 0.05 * model.grid.dx if tol is None else tol
+    if observation.positions is not None and len(times) >= 2:
+        x = np.asarray(observation.positions, float)
+        disp = _velocity_dispersion(x)
+        scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
+        bad = np.flatnonzero(~(disp <= tol * np.maximum(scale, 1e-9)))
+        return None if len(bad) == 0 else float(times[bad[0]])
+    from .step import simulate
+
     frames = frames_needed(model, times)
-    i0, i1, a = frame_interpolation(model.frame_dt, times, frames)
-    valid = ~np.any(np.isnan(obs), axis=-1)
-    dtype = model.bodies[0].x0.dtype
-    obs_j = jnp.asarray(np.where(valid[..., None], obs, 0.0), dtype)
-    valid_j = jnp.asarray(valid)
-    a_j = jnp.asarray(a, dtype)[:, None, None]
-    scale = 1.0 / math.sqrt(max(int(valid.sum()), 1))
-
-    def residuals(params):
-        traj = simulate(model, params, checkpoint=checkpoint, frames=frames)
-        x = (1.0 - a_j) * traj.x[i0] + a_j * traj.x[i1]
-        if by_id:
-            r = jnp.where(valid_j[..., None], x - obs_j, 0.0)
-            return scale * r.reshape(-1)
-        r = jax.vmap(chamfer_residuals)(x, obs_j, valid_j)
-        return (1.0 / math.sqrt(r.size)) * r.reshape(-1)
-
-    return residuals
+    traj = jax.jit(lambda p: simulate(model, p, frames=frames))(params)
+    x = np.asarray(traj.x, float)
+    disp = _velocity_dispersion(x)
+    bad = np.flatnonzero(~(disp <= tol))
+    if len(bad) == 0:
+        return None
+    t = bad[0] * model.frame_dt
+    before = times[times <= t + 1e-9]
+    return float(before[-1]) if len(before) else 0.0
 
 
-# --------------------------------------------------------------------------- the fit
+def plan_stages(
+    model: Model,
+    params: Params,
+    observation: Observation,
+    names: Sequence[str],
+    *,
+    velocity_until: float | None = None,
+    warmup_frames: int = 3,
+    refine_velocity: bool = False,
+) -> tuple[list[Stage], list[str]]:
+    """PAC-NeRF's schedule for ``names`` (see the module docstring) and notes about it."""
+    names = list(names)
+    vel = [n for n in names if _leaf(n) == "velocity"]
+    rest = [n for n in names if _leaf(n) != "velocity"]
+    times = np.asarray(observation.times, float)
+    t_end = float(times.max())
+    notes = []
+    t_c = velocity_until if velocity_until is not None else contact_time(model, params, observation)
+    stages: list[Stage] = []
+    pre = times[(times > 0) & (times <= (t_c if t_c is not None else t_end) + 1e-9)]
+    if vel:
+        if not rest:
+            return [Stage(vel, None, "velocity (all frames)")], notes
+        if t_c is None:
+            notes.append("no contact within the observed frames: the velocity is fitted with the other parameters")
+        elif len(pre) < 1 or t_c <= 0:
+            notes.append("the body is in contact from the start: the velocity is fitted with the other parameters")
+        else:
+            stages.append(Stage(vel, float(t_c), f"velocity (pre-contact frames, t <= {t_c:.4g} s)"))
+    joint = rest + (vel if (refine_velocity or not stages) else [])
+    if t_c is not None and warmup_frames > 0:
+        window = float(t_c) + warmup_frames * model.frame_dt
+        later = times[times > window + 1e-9]
+        inside = times[(times > 0) & (times <= window + 1e-9)]
+        if len(later) and len(inside) >= 2:
+            stages.append(Stage(list(joint), window, f"window (t <= {window:.4g} s, {warmup_frames} frames after contact)"))
+    stages.append(Stage(list(joint), None, f"all frames (t <= {t_end:.4g} s)"))
+    return stages, notes
+
+
+# --------------------------------------------------------------------------- results
 
 
 @dataclass
@@ -209,12 +361,16 @@ class FitResult:
         params: the full parameter pytree at the estimate.
         values: fitted values by name (physical units).
         std: standard deviations by name from the Gauss–Newton covariance (physical units).
-        loss: loss (mean squared error, m^2) after each accepted iteration, first = initial.
-        iterations: solver iterations taken.
+        loss: loss after each accepted iteration, all stages in order (first = initial).
+        iterations: solver iterations taken (all stages).
         seconds: wall time.
-        converged: whether the solver's tolerance was met within ``max_steps``.
-        message: a human-readable status.
+        converged: whether every parameter's last stage met its tolerance.
+        message: a human-readable status (says so when the fit did not converge).
         substeps: substeps per frame used (may exceed the model's after dt halving).
+        initial: the initial values by name.
+        method: the optimiser.
+        stages: per stage: names, window, iterations, loss, converged, message, seconds.
+        notes: remarks (dt halvings, skipped stages).
     """
 
     params: Params
@@ -227,6 +383,9 @@ class FitResult:
     message: str
     substeps: int
     initial: dict[str, Any] = field(default_factory=dict)
+    method: str = "lm"
+    stages: list[dict] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         """The ``fit.json`` contract (DESIGN §5.3) plus status fields."""
@@ -245,79 +404,40 @@ class FitResult:
             "message": self.message,
             "substeps": int(self.substeps),
             "initial": {k: plain(v) for k, v in self.initial.items()},
+            "method": self.method,
+            "stages": json.loads(json.dumps(self.stages, default=float)),
+            "notes": list(self.notes),
         }
 
 
-def fit(
-    model: Model,
-    params: Params,
-    observation: Observation,
-    names: list[str] | tuple[str, ...],
-    *,
-    max_steps: int = 40,
-    rtol: float = 1e-5,
-    atol: float = 1e-8,
-    checkpoint: str | None = "nested",
-    max_dt_halvings: int = 3,
-    progress: Callable[[int, float], None] | None = None,
-) -> FitResult:
-    """Fit named parameters to the tracked positions of ``observation``.
+@dataclass
+class _StageOutcome:
+    y: dict
+    losses: list
+    iterations: int
+    converged: bool
+    message: str
+    unhealthy_trial: bool = False
+    unhealthy_start: bool = False
 
-    Levenberg–Marquardt (``optimistix``) with forward-mode Jacobians (one JVP per
-    parameter; no reverse-mode tape). If the simulation is unstable at the initial guess
-    (CFL > 1 or NaN), the number of substeps is doubled and the fit restarted, up to
-    ``max_dt_halvings`` times; unstable trial steps during the fit are rejected by the
-    trust region.
 
-    Arguments:
-        model: static model (its ``frames`` are extended to cover the observed times).
-        params: initial parameter pytree (the initial guess for the fitted names).
-        observation: an :class:`~jaxmpm.observe.Observation` with ``positions``.
-        names: parameter names (see :func:`resolve_name`).
-        max_steps: maximum solver iterations.
-        rtol, atol: solver tolerances on the step and the loss.
-        checkpoint: checkpoint policy of the rollouts.
-        max_dt_halvings: how often dt may be halved when the initial guess is unstable.
-        progress: optional callback ``progress(iteration, loss)``.
+# --------------------------------------------------------------------------- solvers
 
-    Returns:
-        A :class:`FitResult`.
-    """
-    names = list(dict.fromkeys(names))
-    if not names:
-        raise JaxmpmError("no parameters to fit")
-    paths = {n: resolve_name(model, params, n) for n in names}
-    initial = {n: np.asarray(get_param(params, p)) for n, p in paths.items()}
-    for n, v in initial.items():
-        if _leaf(n) in LOG10_PARAMS and np.any(v <= 0):
-            raise JaxmpmError(f"initial value of {n!r} must be > 0 (fitted in log10), got {v}")
-    start = time.perf_counter()
-    for attempt in range(max_dt_halvings + 1):
-        residual_fn = track_residual_fn(model, observation, checkpoint)
-        # optimisation variables in JAX's default float (float64 when x64 is on: optimistix's
-        # damping terms take that dtype), cast to the model's dtype inside the residuals
-        y0 = {n: to_unconstrained(n, jnp.asarray(v, jnp.result_type(float))) for n, v in initial.items()}
 
-        def residuals(y):
-            r = residual_fn(apply_unconstrained(model, params, names, y))
-            return r.astype(jnp.result_type(float))
+def _float_dtype():
+    return jnp.result_type(float)
 
-        r0 = jax.jit(residuals)(y0)
-        if bool(jnp.all(jnp.isfinite(r0))):
-            break
-        if attempt == max_dt_halvings:
-            raise FitError(
-                f"the simulation is unstable (NaN) at the initial guess even with {model.substeps} substeps per frame; "
-                "try a smaller dt (more substeps) or a different initial guess"
-            )
-        model = model.with_substeps(2 * model.substeps)
 
+def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
     def fn(y, args):  # optimistix's solver interface: (residuals, aux)
         return residuals(y), None
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     options = {"jac": "fwd"}
     tags = frozenset()
+    r0 = jax.jit(residuals)(y0)
+    if not bool(jnp.all(jnp.isfinite(r0))):
+        return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
     f_struct = jax.eval_shape(lambda: r0)
     state = solver.init(fn, y0, None, options, f_struct, None, tags)
 
@@ -330,8 +450,6 @@ def fit(
 
     y = y0
     losses = [float(jnp.sum(r0**2))]
-    if progress is not None:
-        progress(0, losses[0])
     converged, stalled, iterations = False, False, 0
     for iterations in range(1, max_steps + 1):
         y, state, done, result, loss = advance(y, state)
@@ -340,7 +458,7 @@ def fit(
         if accepted:
             losses.append(float(loss))
         if progress is not None:
-            progress(iterations, losses[-1])
+            progress(offset + iterations, losses[-1])
         if bool(done):
             converged = result == optx.RESULTS.successful
             break
@@ -350,41 +468,156 @@ def fit(
             converged = stalled = True
             break
     # optimistix returns the last *accepted* point as y (trial points live in the state).
-    y_best = y
-    final_params = apply_unconstrained(model, params, names, y_best)
-    values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}
-    std = _gauss_newton_std(residuals, y_best, names)
-    if stalled:
+    unhealthy = False
+    if stalled or not converged:
+        trial = jax.jit(residuals)(state.y_eval)
+        unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
+        if unhealthy and stalled:
+            converged = False
+    if stalled and not unhealthy:
         message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
                    "lower the loss further: a stationary point at this precision)")
+    elif stalled:
+        message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
     elif converged:
         message = f"converged in {iterations} iterations"
     else:
-        message = f"did not converge within {max_steps} iterations; returning the best parameters so far"
-    return FitResult(
-        params=final_params,
-        values=values,
-        std=std,
-        loss=losses,
-        iterations=iterations,
-        seconds=time.perf_counter() - start,
-        converged=converged,
-        message=message,
-        substeps=model.substeps,
-        initial=initial,
-    )
+        message = f"did not converge within {max_steps} iterations"
+    return _StageOutcome(y, losses, iterations, converged, message, unhealthy)
 
 
-def _gauss_newton_std(residuals, y: dict, names) -> dict[str, np.ndarray]:
+def _run_bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
+    f0 = jax.jit(loss_fn)(y0)
+    if not bool(jnp.isfinite(f0)):
+        return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+    # BFGS starts from an identity Hessian, so its first steps scale with the gradient:
+    # minimise the loss relative to its initial value to make them O(1)
+    scale = float(f0) if float(f0) > 0 else 1.0
+
+    def fn(y, args):
+        return loss_fn(y) / scale, None
+
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    options = {"autodiff_mode": "fwd"}
+    tags = frozenset()
+    f0 = f0 / scale
+    f_struct = jax.eval_shape(lambda: f0)
+    state = solver.init(fn, y0, None, options, f_struct, None, tags)
+
+    @eqx.filter_jit
+    def advance(y, state):
+        y, state, _ = solver.step(fn, y, None, options, state, tags)
+        done, result = solver.terminate(fn, y, None, options, state, tags)
+        return y, state, done, result
+
+    y = y0
+    losses = [float(f0) * scale]
+    converged, iterations = False, 0
+    best = (losses[0], y0)
+    for iterations in range(1, max_steps + 1):
+        y, state, done, result = advance(y, state)
+        f = float(state.f_info.f) * scale
+        if iterations > 1 and np.isfinite(f) and f < losses[-1]:
+            losses.append(f)
+            best = (f, y)
+        if progress is not None:
+            progress(offset + iterations, losses[-1])
+        if bool(done):
+            converged = result == optx.RESULTS.successful
+            break
+    y = best[1]
+    unhealthy = False
+    if not converged:
+        unhealthy = not bool(jnp.isfinite(jax.jit(loss_fn)(state.y_eval)))
+    message = f"converged in {iterations} iterations" if converged else f"did not converge within {max_steps} iterations"
+    return _StageOutcome(y, losses, iterations, converged, message, unhealthy)
+
+
+def _learning_rates(names, y0, learning_rates) -> dict:
+    out = {}
+    for n in names:
+        leaf = _leaf(n)
+        lr = (learning_rates or {}).get(n, (learning_rates or {}).get(leaf, ADAM_LEARNING_RATES.get(leaf, 0.01)))
+        out[n] = jnp.broadcast_to(jnp.asarray(lr, _float_dtype()), jnp.shape(y0[n]))
+    return out
+
+
+def _run_adam(
+    loss_fn, y0, *, max_steps, learning_rates, lr_decay, xtol, patience, grad, seed, progress, offset, names
+) -> _StageOutcome:
+    import optax
+
+    lrs = _learning_rates(names, y0, learning_rates)
+    decay = 1.0 if lr_decay is None else float(lr_decay)
+    schedule = optax.exponential_decay(1.0, transition_steps=max(max_steps, 1), decay_rate=decay)
+    opt = optax.chain(optax.scale_by_adam(), optax.scale_by_schedule(schedule))
+    _, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    def value_and_grad(y, key):
+        if grad == "rev":
+            return jax.value_and_grad(loss_fn)(y, key)
+        flat, _ = jax.flatten_util.ravel_pytree(y)
+        f = lambda v: loss_fn(unravel(v), key)  # noqa: E731
+        basis = jnp.eye(flat.size, dtype=flat.dtype)
+        # one JVP per parameter; the primal does not depend on the tangent, so it runs once
+        value, g = jax.vmap(lambda t: jax.jvp(f, (flat,), (t,)), out_axes=(None, 0))(basis)
+        return value, unravel(g)
+
+    @jax.jit
+    def advance(y, opt_state, key):
+        value, g = value_and_grad(y, key)
+        updates, opt_state = opt.update(g, opt_state, y)
+        new = jax.tree_util.tree_map(lambda a, u, lr: a - lr * u, y, updates, lrs)
+        ok = jnp.isfinite(value) & jnp.all(jnp.isfinite(jax.flatten_util.ravel_pytree(g)[0]))
+        return new, opt_state, value, ok
+
+    base = jax.random.PRNGKey(seed)
+    y, opt_state = y0, opt.init(y0)
+    losses, history = [], []
+    best = (math.inf, y0)
+    converged, unhealthy, iterations = False, False, 0
+    for iterations in range(1, max_steps + 1):
+        new, new_state, value, ok = advance(y, opt_state, jax.random.fold_in(base, iterations))
+        value = float(value)
+        if not bool(ok):
+            unhealthy = True
+            iterations -= 1
+            if iterations == 0:
+                return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+            break
+        losses.append(value)
+        if value < best[0]:
+            best = (value, y)
+        if progress is not None:
+            progress(offset + iterations, value)
+        history.append(np.asarray(jax.flatten_util.ravel_pytree(y)[0]))
+        y, opt_state = new, new_state
+        if len(history) > patience and np.max(np.abs(history[-1] - history[-1 - patience])) < xtol:
+            converged = True
+            break
+    y_out = best[1] if np.isfinite(best[0]) else y
+    if converged:
+        message = f"converged in {iterations} iterations (parameters moved < {xtol:g} over the last {patience})"
+    elif unhealthy:
+        message = f"stopped after {iterations} iterations: the loss or its gradient became non-finite"
+    else:
+        message = f"did not converge within {max_steps} iterations (Adam; the lowest-loss iterate is returned)"
+    return _StageOutcome(y_out, losses, iterations, converged, message, unhealthy)
+
+
+def _gauss_newton_std(residuals, y: dict, names, count: int | None = None) -> dict[str, np.ndarray]:
     """Standard deviations from ``s^2 (J^T J)^-1`` with ``s^2 = RSS / (m - p)``, mapped to physical units.
 
-    This treats residuals as independent, so it is a lower bound when they are correlated.
+    ``m`` is ``count`` (the informative residual entries) or the residual vector's length.
+    This treats residuals as independent with equal variance, so it is a lower bound when
+    they are correlated (e.g. neighbouring pixels).
     """
     flat, unravel = jax.flatten_util.ravel_pytree(y)
     J = jax.jit(jax.jacfwd(lambda f: residuals(unravel(f))))(flat)
     r = jax.jit(residuals)(y)
     J, r = np.asarray(J, float), np.asarray(r, float)
     m, p = J.shape
+    m = m if count is None else min(m, int(count))
     s2 = float(r @ r) / max(m - p, 1)
     cov = s2 * np.linalg.pinv(J.T @ J)
     std_y = unravel(jnp.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), flat.dtype))
@@ -392,4 +625,351 @@ def _gauss_newton_std(residuals, y: dict, names) -> dict[str, np.ndarray]:
     for n in names:
         slope = jax.vmap(jax.grad(lambda t, n=n: jnp.sum(from_unconstrained(n, t))))(jnp.ravel(y[n]))
         out[n] = np.abs(np.asarray(slope).reshape(np.shape(y[n]))) * np.asarray(std_y[n])
+    return out
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+def fit(
+    model: Model,
+    params: Params,
+    observation: Observation,
+    names: Sequence[str] | None = None,
+    *,
+    method: str = "lm",
+    stages: str | Sequence[Stage] | None = "auto",
+    weights: dict[str, float] | None = None,
+    max_steps: int | None = None,
+    rtol: float = 1e-5,
+    atol: float = 1e-8,
+    checkpoint: str | None = "nested",
+    max_dt_halvings: int = 3,
+    cfl_limit: float = 1.0,
+    progress: Callable[[int, float], None] | None = None,
+    log: Callable[[str], None] | None = None,
+    learning_rates: dict[str, float] | None = None,
+    lr_decay: float | None = None,
+    xtol: float = 1e-3,
+    patience: int = 10,
+    grad: str = "fwd",
+    seed: int = 0,
+    velocity_until: float | None = None,
+    warmup_frames: int = 3,
+    refine_velocity: bool = False,
+    renderer: Any = "volume",
+    num_pixels: int = 256,
+    probes: dict | None = None,
+    colors: Any = "auto",
+    uncertainty: bool = True,
+) -> FitResult:
+    """Fit named parameters of ``model`` to ``observation``.
+
+    Arguments:
+        model: static model (its frames are extended to cover the observed times).
+        params: initial parameter pytree (the initial guess for the fitted names).
+        observation: an :class:`~jaxmpm.observe.Observation` (tracks, masks/images, probes).
+        names: parameter names (see :func:`resolve_name`); default: the material's.
+        method: ``"lm"`` (Levenberg–Marquardt), ``"adam"`` or ``"bfgs"``.
+        stages: ``"auto"`` (PAC-NeRF's velocity → window → all frames, see
+            :func:`plan_stages`), None (one stage: all names, all frames) or a list of
+            :class:`Stage`.
+        weights: loss weights per term (:func:`jaxmpm.losses.build_objective`).
+        max_steps: iterations per stage (default 40 LM, 60 BFGS, 100 Adam — 50 on the
+            window stage, as PAC-NeRF).
+        rtol, atol: LM/BFGS tolerances on the step and the loss.
+        checkpoint: checkpoint policy of the rollouts.
+        max_dt_halvings: how often dt may be halved (in all) after unhealthy rollouts.
+        cfl_limit: a rollout whose CFL number ``max|v| dt/dx`` exceeds this is unhealthy.
+        progress: callback ``progress(iteration, loss)`` (iterations count across stages).
+        log: callback ``log(message)`` for stage starts, dt halvings and notes.
+        learning_rates: Adam learning rates by name or leaf (default
+            :data:`ADAM_LEARNING_RATES`).
+        lr_decay: Adam: the learning rates decay exponentially to ``lr·lr_decay`` over a
+            stage (GIC); default constant (PAC-NeRF).
+        xtol, patience: Adam stops (converged) when no parameter moved more than ``xtol``
+            (optimisation space) over the last ``patience`` iterations.
+        grad: Adam's gradient: ``"fwd"`` (forward mode, one JVP per parameter) or ``"rev"``.
+        seed: PRNG seed of Adam's random pixel batches.
+        velocity_until: last observed time of the velocity stage (default: detected, see
+            :func:`contact_time`).
+        warmup_frames: frames after contact in the window stage (PAC-NeRF: 3).
+        refine_velocity: also refit the velocity in the later stages.
+        renderer, num_pixels, probes, colors: image and probe options of the objective.
+        uncertainty: compute the Gauss–Newton standard deviations.
+
+    Returns:
+        A :class:`FitResult`; ``converged`` is False (and ``message`` says so) when a stage
+        did not meet its tolerance: the parameters are then the best found.
+
+    Raises:
+        JaxmpmError: unknown parameters or methods; ObservationError: unusable data;
+        FitError: the rollout stays unhealthy after ``max_dt_halvings`` halvings.
+    """
+    start = time.perf_counter()
+    say = log or (lambda msg: None)
+    if method not in METHODS:
+        raise JaxmpmError(f"unknown fit method {method!r}; expected one of {METHODS}")
+    if grad not in ("fwd", "rev"):
+        raise JaxmpmError(f"grad must be 'fwd' or 'rev', got {grad!r}")
+    if not isinstance(observation, Observation):
+        raise ObservationError(f"expected an Observation, got {type(observation).__name__}")
+    _check_observation(model, observation)
+    names = default_names(model) if names is None else list(dict.fromkeys(names))
+    if not names:
+        raise JaxmpmError("no parameters to fit")
+    paths = {n: resolve_name(model, params, n) for n in names}
+    initial = {n: np.asarray(get_param(params, p)) for n, p in paths.items()}
+    for n, v in initial.items():
+        if _leaf(n) in LOG10_PARAMS and np.any(v <= 0):
+            raise JaxmpmError(f"initial value of {n!r} must be > 0 (fitted in log10), got {v}")
+        if not np.all(np.isfinite(v)):
+            raise JaxmpmError(f"initial value of {n!r} is not finite: {v}")
+    objective_options = dict(weights=weights, probes=probes, renderer=renderer, num_pixels=num_pixels,
+                             colors=colors, checkpoint=checkpoint, cfl_limit=cfl_limit)
+    # fail early on unusable data (before any rollout)
+    build_objective(model, observation, **objective_options)
+
+    notes: list[str] = []
+    if stages == "auto":
+        plan, plan_notes = plan_stages(model, params, observation, names, velocity_until=velocity_until,
+                                       warmup_frames=warmup_frames, refine_velocity=refine_velocity)
+        notes += plan_notes
+    elif stages is None or stages == "single":
+        plan = [Stage(list(names), None, "all frames")]
+    elif isinstance(stages, str):
+        raise JaxmpmError(f"stages must be 'auto', None or a list of Stage, got {stages!r}")
+    else:
+        plan = list(stages)
+        for s in plan:
+            unknown = [n for n in s.names if n not in paths]
+            if unknown:
+                raise JaxmpmError(f"stage {s.label or s.names}: {unknown} are not among the fitted names {names}")
+    for note in notes:
+        say(note)
+
+    y_all = {n: to_unconstrained(n, jnp.asarray(v, _float_dtype())) for n, v in initial.items()}
+    halvings_left = max_dt_halvings
+    losses: list[float] = []
+    records: list[dict] = []
+    std: dict[str, np.ndarray] = {}
+    last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+    total_iterations = 0
+    for si, stage in enumerate(plan):
+        stage_method = stage.method or method
+        if stage_method not in METHODS:
+            raise JaxmpmError(f"unknown fit method {stage_method!r}; expected one of {METHODS}")
+        steps = stage.max_steps or max_steps or (
+            ADAM_WINDOW_STEPS if (stage_method == "adam" and stage.until is not None and si < len(plan) - 1)
+            else DEFAULT_MAX_STEPS[stage_method])
+        t_stage = time.perf_counter()
+        say(f"stage {si + 1}/{len(plan)}: {', '.join(stage.names)} — {stage.label or 'all frames'} "
+            f"[{stage_method}, {model.substeps} substeps/frame]")
+        while True:
+            objective = build_objective(model, observation, until=stage.until, **objective_options)
+            fixed = {n: v for n, v in y_all.items() if n not in stage.names}
+            base = apply_unconstrained(model, params, list(fixed), fixed)
+            snames = list(stage.names)
+
+            def params_of(y, base=base, snames=snames):
+                return apply_unconstrained(model, base, snames, y)
+
+            y0 = {n: y_all[n] for n in snames}
+            outcome = _solve(stage_method, objective, params_of, y0, steps=steps, rtol=rtol, atol=atol,
+                             progress=progress, offset=total_iterations, learning_rates=learning_rates,
+                             lr_decay=lr_decay, xtol=xtol, patience=patience, grad=grad, seed=seed + si,
+                             names=snames)
+            if outcome.unhealthy_start:
+                ok, why = objective.health(params_of(y0))
+                why = why or "not finite (NaN loss)"
+                if halvings_left <= 0:
+                    raise FitError(
+                        f"stage {si + 1} ({stage.label}): the simulation is {why} even with {model.substeps} "
+                        "substeps per frame; try a smaller dt (more substeps) or a different initial guess"
+                    )
+                model = model.with_substeps(2 * model.substeps)
+                halvings_left -= 1
+                notes.append(f"stage {si + 1}: {why}; halved dt ({model.substeps} substeps/frame)")
+                say(notes[-1])
+                continue
+            total_iterations += outcome.iterations
+            for n in snames:
+                y_all[n] = outcome.y[n]
+            if outcome.unhealthy_trial and not outcome.converged and halvings_left > 0:
+                model = model.with_substeps(2 * model.substeps)
+                halvings_left -= 1
+                notes.append(f"stage {si + 1}: unstable trial points stopped the solver; halved dt "
+                             f"({model.substeps} substeps/frame) and continued from the best point")
+                say(notes[-1])
+                losses += outcome.losses
+                continue
+            break
+        losses += outcome.losses
+        record = {
+            "label": stage.label,
+            "names": snames,
+            "until": stage.until,
+            "frames": objective.frames,
+            "method": stage_method,
+            "iterations": outcome.iterations,
+            "loss": [outcome.losses[0], min(outcome.losses)] if outcome.losses else [],
+            "converged": bool(outcome.converged),
+            "message": outcome.message,
+            "seconds": time.perf_counter() - t_stage,
+            "substeps": model.substeps,
+            "terms": objective.terms,
+        }
+        records.append(record)
+        say(f"stage {si + 1}: {outcome.message}")
+        final_names = [n for n in snames if last_stage_of[n] == si]
+        if uncertainty and final_names:
+            def res(y, params_of=params_of, objective=objective):
+                return objective.residuals(params_of(y)).astype(_float_dtype())
+
+            stage_std = _gauss_newton_std(res, {n: y_all[n] for n in snames}, snames, objective.count)
+            std.update({n: stage_std[n] for n in final_names})
+
+    final_params = apply_unconstrained(model, params, names, y_all)
+    values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}
+    deciding = [records[i] for i in sorted(set(last_stage_of.values()))]
+    converged = all(r["converged"] for r in deciding)
+    if converged:
+        message = f"converged ({total_iterations} iterations in {len(records)} stage{'s' if len(records) > 1 else ''})"
+        if len(records) == 1:
+            message = records[0]["message"]
+    else:
+        failed = "; ".join(f"stage {records.index(r) + 1} ({r['label']}): {r['message']}" for r in deciding if not r["converged"])
+        message = f"did not converge — {failed}; returning the best parameters so far"
+    return FitResult(
+        params=final_params,
+        values=values,
+        std=std,
+        loss=losses,
+        iterations=total_iterations,
+        seconds=time.perf_counter() - start,
+        converged=converged,
+        message=message,
+        substeps=model.substeps,
+        initial=initial,
+        method=method,
+        stages=records,
+        notes=notes,
+    )
+
+
+def _solve(method, objective: Objective, params_of, y0, *, steps, rtol, atol, progress, offset, learning_rates,
+           lr_decay, xtol, patience, grad, seed, names) -> _StageOutcome:
+    dtype = _float_dtype()
+    if method == "lm":
+        def residuals(y):
+            return objective.residuals(params_of(y)).astype(dtype)
+
+        return _run_lm(residuals, y0, max_steps=steps, rtol=rtol, atol=atol, progress=progress, offset=offset)
+    if method == "bfgs":
+        def loss(y):
+            return objective.loss(params_of(y)).astype(dtype)
+
+        return _run_bfgs(loss, y0, max_steps=steps, rtol=rtol, atol=atol, progress=progress, offset=offset)
+
+    def loss(y, key):
+        return objective.loss(params_of(y), key).astype(dtype)
+
+    return _run_adam(loss, y0, max_steps=steps, learning_rates=learning_rates, lr_decay=lr_decay, xtol=xtol,
+                     patience=patience, grad=grad, seed=seed, progress=progress, offset=offset, names=names)
+
+
+# --------------------------------------------------------------------------- checks, scenes
+
+
+def _check_observation(model: Model, observation: Observation) -> None:
+    spec = observation.scene_spec
+    if spec is not None and spec.get("dim") not in (None, model.dim):
+        raise ObservationError(f"the observation's scene is {spec.get('dim')}-D but the model is {model.dim}-D")
+    if spec is not None and isinstance(spec.get("bodies"), list) and len(spec["bodies"]) != len(model.bodies):
+        raise ObservationError(
+            f"the observation's scene has {len(spec['bodies'])} bodies but the model has {len(model.bodies)}"
+        )
+
+
+_GEOMETRY_KEYS = ("shape", "lo", "hi", "center", "radius", "path", "scale", "translate", "rotate")
+_COLLIDER_KEYS = ("type", "point", "normal", "lo", "hi", "path", "scale", "translate", "rotate", "points",
+                  "segments", "closed", "contact", "velocity", "angular_velocity")
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-6, abs_tol=1e-9)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, str) and isinstance(b, str) and a != b:
+        from pathlib import Path
+
+        return Path(a).name == Path(b).name  # a path made absolute by Scene.to_json
+    return a == b
+
+
+def check_scene_compatible(spec: dict, observed: dict | None) -> None:
+    """Raise ObservationError when an observation's scene disagrees with the fitted scene.
+
+    Material *values*, initial velocities, substeps, frame counts and grid spacing may
+    differ (they are what a fit varies, or numerical choices); the dimension, domain,
+    bodies' shapes and material models, and the colliders' geometry and contact may not.
+    """
+    if observed is None:
+        return
+    diffs = []
+    for key in ("dim",):
+        if not _same(spec.get(key), observed.get(key)):
+            diffs.append(f"{key}: {spec.get(key)!r} vs {observed.get(key)!r}")
+    for key in ("lo", "hi"):
+        a, b = spec.get("domain", {}).get(key), observed.get("domain", {}).get(key)
+        if not _same(a, b):
+            diffs.append(f"domain.{key}: {a} vs {b}")
+    bodies, obodies = spec.get("bodies", []), observed.get("bodies", [])
+    if len(bodies) != len(obodies):
+        diffs.append(f"{len(bodies)} bodies vs {len(obodies)}")
+    for k, (b, o) in enumerate(zip(bodies, obodies)):
+        for key in _GEOMETRY_KEYS:
+            if not _same(b.get(key), o.get(key)):
+                diffs.append(f"bodies[{k}].{key}: {b.get(key)!r} vs {o.get(key)!r}")
+        m1, m2 = (b.get("material") or {}).get("model"), (o.get("material") or {}).get("model")
+        if m1 != m2:
+            diffs.append(f"bodies[{k}].material.model: {m1!r} vs {m2!r}")
+    cols, ocols = spec.get("colliders", []), observed.get("colliders", [])
+    if len(cols) != len(ocols):
+        diffs.append(f"{len(cols)} colliders vs {len(ocols)}")
+    for k, (c, o) in enumerate(zip(cols, ocols)):
+        for key in _COLLIDER_KEYS:
+            if not _same(c.get(key), o.get(key)):
+                diffs.append(f"colliders[{k}].{key}: {c.get(key)!r} vs {o.get(key)!r}")
+    if diffs:
+        shown = "; ".join(diffs[:6]) + (f"; and {len(diffs) - 6} more" if len(diffs) > 6 else "")
+        raise ObservationError(f"the observation was made for a different scene (this scene vs the observation's): {shown}")
+
+
+def fit_scene(scene, observation: Observation, names: Sequence[str] | None = None, **kwargs) -> FitResult:
+    """:func:`fit` for a loaded :class:`~jaxmpm.scene.Scene` (its params are the initial guess).
+
+    Checks first that the observation's embedded scene (if any) matches this one
+    (:func:`check_scene_compatible`); ``names`` default to the material's parameters.
+    """
+    check_scene_compatible(scene.spec, observation.scene_spec)
+    return fit(scene.model, scene.params, observation, names, **kwargs)
+
+
+def parse_weights(text: str | None) -> dict | None:
+    """``"tracks=1,silhouette=0.5"`` -> ``{"tracks": 1.0, "silhouette": 0.5}``."""
+    if not text:
+        return None
+    out = {}
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        key, sep, value = item.partition("=")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise JaxmpmError(f"--weights: expected name=number pairs (e.g. tracks=1,silhouette=0.5), got {item!r}") from None
+        if not sep:
+            raise JaxmpmError(f"--weights: expected name=number pairs, got {item!r}")
     return out
