@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from . import cpic
+from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .model import Model, Params
 from .state import Grid, State, Stencil, compute_stencil, offset_terms, stencil_offsets
@@ -63,7 +64,7 @@ def material_update(model: Model, params: Params, state: State) -> tuple[Float[A
     F_trial = jnp.einsum("nij,njk->nik", eye + dt * state.C, state.F)
     Fs, auxs = [], []
     for body, sl, bp in zip(model.bodies, model.body_slices(), params["bodies"]):
-        F, aux = body.material.return_map(F_trial[sl], state.C[sl], state.aux[sl], bp, dt)
+        F, aux = _ext.return_map(body.material, F_trial[sl], state.C[sl], state.aux[sl], bp, dt, params)  # ext: cohesion
         Fs.append(F)
         auxs.append(aux)
     return jnp.concatenate(Fs), jnp.concatenate(auxs)
@@ -200,6 +201,7 @@ def grid_update(
     if rigid is not None:
         material_share = (mass / safe_mass)[:, None]
     v = v + material_share * gravity
+    v = _ext.grid_velocity(model, params, v)  # extensions: drag (no-op unless enabled)
     nodes = node_coordinates(grid, dtype)
     v = apply_grid_colliders(model, params, nodes, v, time)
     v = apply_domain_walls(grid, nodes, v)
@@ -317,10 +319,12 @@ def step(model: Model, params: Params, state: State) -> State:
     contact = gather_contact(model, st, state)
     F, aux = material_update(model, params, state)
     tau = kirchhoff_stress(model, params, F, state.C, aux)
+    tau = _ext.stress(model, params, state, F, aux, tau)  # extensions: rate_dependence, heterogeneity
     mass, momentum = p2g(grid, st, state, tau, dt, contact)
     rigid = p2g_boundary(model, state, state.time)
     grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
     v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, tau, contact))
+    C = _ext.affine(model, params, C)  # extensions: damping
     x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
     tag = state.tag if contact is None else contact.tag
     return eqx.tree_at(
@@ -405,8 +409,9 @@ def simulate(
     if checkpoint not in CHECKPOINT_POLICIES:
         raise ValueError(f"checkpoint must be one of {CHECKPOINT_POLICIES}, got {checkpoint!r}")
     frames = model.frames if frames is None else frames
+    model, params = _ext.prepare(model, params)  # extensions: gravity, colliders (no-op unless enabled)
     if state is None:
-        state = initial_state(model, params)
+        state = _ext.initial_velocity(model, params, initial_state(model, params))
     frame = _frame_function(model, params, observe, checkpoint)
     first = _frame_outputs(model, state, observe, jnp.zeros((), state.x.dtype))
     final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
@@ -461,8 +466,9 @@ def run_frames(
     from .errors import SimulationError
     from .model import initial_state
 
+    model, params = _ext.prepare(model, params)  # extensions: gravity, colliders (no-op unless enabled)
     if state is None:
-        state = initial_state(model, params)
+        state = _ext.initial_velocity(model, params, initial_state(model, params))
     frame = jax.jit(_frame_function(model, params, observe, None))
     outputs = [_frame_outputs(model, state, observe, jnp.zeros((), state.x.dtype))]
     for i in range(1, model.frames):
