@@ -81,7 +81,9 @@ LOG10_PARAMS = frozenset({"E", "mu", "kappa", "yield_stress", "eta", "density"})
 #: Poisson ratio bounds of the tanh map nu = mid + half * tanh((y - mid) / half).
 NU_BOUNDS = (-0.45, 0.495)
 
-METHODS = ("lm", "adam", "bfgs")
+#: ``"lm-optimistix"``: the same problem solved by ``optimistix.LevenbergMarquardt``
+#: (slower to compile and per iteration; kept for comparison).
+METHODS = ("lm", "adam", "bfgs", "lm-optimistix")
 
 #: PAC-NeRF's dynamic-stage Adam learning rates (configs' ``physical_params``; anchors §1.5),
 #: in the optimisation space (log10 units for log parameters, degrees for the friction
@@ -104,12 +106,12 @@ ADAM_LEARNING_RATES = {
 
 #: Default iterations per stage and method (PAC-NeRF: 50 Adam iterations on the early
 #: window, 100 on all frames).
-DEFAULT_MAX_STEPS = {"lm": 40, "bfgs": 60, "adam": 100}
+DEFAULT_MAX_STEPS = {"lm": 40, "lm-optimistix": 40, "bfgs": 60, "adam": 100}
 ADAM_WINDOW_STEPS = 50
 
 #: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
 #: which the fit stops at a stationary point.
-MAX_REJECTED_STEPS = 8
+MAX_REJECTED_STEPS = 6
 
 
 class FitError(JaxmpmError, RuntimeError):
@@ -306,7 +308,7 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
     if len(bad) == 0:
         return None
     t = bad[0] * model.frame_dt
-    before = times[times <= t + 1e-9]
+    before = times[times <= t + 1e-3 * model.frame_dt]
     return float(before[-1]) if len(before) else 0.0
 
 
@@ -327,9 +329,10 @@ def plan_stages(
     times = np.asarray(observation.times, float)
     t_end = float(times.max())
     notes = []
+    eps = 1e-3 * model.frame_dt  # observed times may be float32
     t_c = velocity_until if velocity_until is not None else contact_time(model, params, observation)
     stages: list[Stage] = []
-    pre = times[(times > 0) & (times <= (t_c if t_c is not None else t_end) + 1e-9)]
+    pre = times[(times > 0) & (times <= (t_c if t_c is not None else t_end) + eps)]
     if vel:
         if not rest:
             return [Stage(vel, None, "velocity (all frames)")], notes
@@ -342,8 +345,8 @@ def plan_stages(
     joint = rest + (vel if (refine_velocity or not stages) else [])
     if t_c is not None and warmup_frames > 0:
         window = float(t_c) + warmup_frames * model.frame_dt
-        later = times[times > window + 1e-9]
-        inside = times[(times > 0) & (times <= window + 1e-9)]
+        later = times[times > window + eps]
+        inside = times[(times > 0) & (times <= window + eps)]
         if len(later) and len(inside) >= 2:
             stages.append(Stage(list(joint), window, f"window (t <= {window:.4g} s, {warmup_frames} frames after contact)"))
     stages.append(Stage(list(joint), None, f"all frames (t <= {t_end:.4g} s)"))
@@ -419,6 +422,7 @@ class _StageOutcome:
     message: str
     unhealthy_trial: bool = False
     unhealthy_start: bool = False
+    jacobian: Any = None  # (r, J) at y when the solver has them (LM), for the covariance
 
 
 # --------------------------------------------------------------------------- solvers
@@ -428,7 +432,98 @@ def _float_dtype():
     return jnp.result_type(float)
 
 
+
+def residuals_and_jacobian(residuals: Callable, y0: dict):
+    """``rj(flat) -> (r, J)`` (jitted) and the ravel/unravel pair of ``y0``: the residuals and
+    their Jacobian by forward mode, one JVP per parameter sharing one primal rollout."""
+    flat0, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    @jax.jit
+    def rj(flat):
+        basis = jnp.eye(flat.size, dtype=flat.dtype)
+        g = lambda v: residuals(unravel(v))  # noqa: E731
+        r, J = jax.vmap(lambda t: jax.jvp(g, (flat,), (t,)), out_axes=(None, 0))(basis)
+        return r, J.T
+
+    return rj, flat0, unravel
+
+
 def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
+    """Levenberg–Marquardt with Marquardt's diagonal scaling and Nielsen's damping update.
+
+    Every evaluation computes the residuals and the full Jacobian in one forward-mode pass
+    (one compiled function per stage); the Jacobian at the accepted point is kept for the
+    covariance. Converged when an accepted step changes no parameter by more than
+    ``rtol (1 + |y|)`` (optimisation units: decades, degrees, m/s), or the loss by no more
+    than ``atol + rtol f``, or the loss has fallen by ten orders of magnitude; or, at the
+    loss's numerical floor, after ``MAX_REJECTED_STEPS`` consecutive rejected steps.
+    """
+    rj, flat, unravel = residuals_and_jacobian(residuals, y0)
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    if not np.all(np.isfinite(r)) or not np.all(np.isfinite(J)):
+        return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+    y = np.asarray(flat, np.float64)
+    f = float(r @ r)
+    losses = [f]
+    lam, nu = None, 2.0
+    converged = stalled = unhealthy = False
+    rejected = 0
+    iterations = 0
+    for iterations in range(1, max_steps + 1):
+        g = J.T @ r
+        A = J.T @ J
+        d = np.diag(A).copy()
+        d = np.maximum(d, 1e-12 * max(float(d.max()), 1e-300))
+        if lam is None:
+            lam = 1e-3
+        try:
+            step = np.linalg.solve(A + lam * np.diag(d), -g)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(A + lam * np.diag(d), -g, rcond=None)[0]
+        predicted = -(2.0 * step @ g + step @ A @ step)  # f - |r + J step|^2
+        trial = y + step
+        r_t, J_t = (np.asarray(a, np.float64) for a in rj(jnp.asarray(trial, flat.dtype)))
+        finite = bool(np.all(np.isfinite(r_t)) and np.all(np.isfinite(J_t)))
+        f_t = float(r_t @ r_t) if finite else math.inf
+        rho = (f - f_t) / predicted if predicted > 0 else -1.0
+        if finite and f_t < f and rho > 1e-4:
+            small_step = bool(np.all(np.abs(step) <= rtol * (1.0 + np.abs(y))))
+            small_change = (f - f_t) <= atol + rtol * f
+            y, r, J, f = trial, r_t, J_t, f_t
+            losses.append(f)
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu, rejected, unhealthy = 2.0, 0, False
+            if progress is not None:
+                progress(offset + iterations, f)
+            if small_step or small_change or f <= 1e-10 * losses[0]:
+                converged = True
+                break
+        else:
+            lam *= nu
+            nu *= 2.0
+            rejected += 1
+            unhealthy = not finite
+            if progress is not None:
+                progress(offset + iterations, f)
+            # At the loss's numerical floor no trial step can decrease it, so the damping
+            # grows without the tolerance test ever passing: a stationary point too.
+            if rejected >= MAX_REJECTED_STEPS:
+                stalled = True
+                converged = not unhealthy
+                break
+    if stalled and not unhealthy:
+        message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
+                   "lower the loss further: a stationary point at this precision)")
+    elif stalled:
+        message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
+    elif converged:
+        message = f"converged in {iterations} iterations"
+    else:
+        message = f"did not converge within {max_steps} iterations"
+    y_out = unravel(jnp.asarray(y, flat.dtype))
+    return _StageOutcome(y_out, losses, iterations, converged, message, unhealthy, jacobian=(r, J))
+
+def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
     def fn(y, args):  # optimistix's solver interface: (residuals, aux)
         return residuals(y), None
 
@@ -549,8 +644,7 @@ def _run_adam(
 
     lrs = _learning_rates(names, y0, learning_rates)
     decay = 1.0 if lr_decay is None else float(lr_decay)
-    schedule = optax.exponential_decay(1.0, transition_steps=max(max_steps, 1), decay_rate=decay)
-    opt = optax.chain(optax.scale_by_adam(), optax.scale_by_schedule(schedule))
+    opt = optax.scale_by_adam()
     _, unravel = jax.flatten_util.ravel_pytree(y0)
 
     def value_and_grad(y, key):
@@ -564,10 +658,11 @@ def _run_adam(
         return value, unravel(g)
 
     @jax.jit
-    def advance(y, opt_state, key):
+    def advance(y, opt_state, key, factor):
         value, g = value_and_grad(y, key)
-        updates, opt_state = opt.update(g, opt_state, y)
-        new = jax.tree_util.tree_map(lambda a, u, lr: a - lr * u, y, updates, lrs)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
+            updates, opt_state = opt.update(g, opt_state, y)
+        new = jax.tree_util.tree_map(lambda a, u, lr: a - (factor * lr).astype(a.dtype) * u, y, updates, lrs)
         ok = jnp.isfinite(value) & jnp.all(jnp.isfinite(jax.flatten_util.ravel_pytree(g)[0]))
         return new, opt_state, value, ok
 
@@ -577,7 +672,8 @@ def _run_adam(
     best = (math.inf, y0)
     converged, unhealthy, iterations = False, False, 0
     for iterations in range(1, max_steps + 1):
-        new, new_state, value, ok = advance(y, opt_state, jax.random.fold_in(base, iterations))
+        factor = jnp.asarray(decay ** ((iterations - 1) / max(max_steps - 1, 1)), _float_dtype())
+        new, new_state, value, ok = advance(y, opt_state, jax.random.fold_in(base, iterations), factor)
         value = float(value)
         if not bool(ok):
             unhealthy = True
@@ -605,17 +701,18 @@ def _run_adam(
     return _StageOutcome(y_out, losses, iterations, converged, message, unhealthy)
 
 
-def _gauss_newton_std(residuals, y: dict, names, count: int | None = None) -> dict[str, np.ndarray]:
+def _gauss_newton_std(residuals, y: dict, names, count: int | None = None, rj=None) -> dict[str, np.ndarray]:
     """Standard deviations from ``s^2 (J^T J)^-1`` with ``s^2 = RSS / (m - p)``, mapped to physical units.
 
-    ``m`` is ``count`` (the informative residual entries) or the residual vector's length.
+    ``m`` is ``count`` (the informative residual entries) or the residual vector's length;
+    ``rj`` the residuals and Jacobian at ``y`` when known (else computed, forward mode).
     This treats residuals as independent with equal variance, so it is a lower bound when
     they are correlated (e.g. neighbouring pixels).
     """
     flat, unravel = jax.flatten_util.ravel_pytree(y)
-    J = jax.jit(jax.jacfwd(lambda f: residuals(unravel(f))))(flat)
-    r = jax.jit(residuals)(y)
-    J, r = np.asarray(J, float), np.asarray(r, float)
+    if rj is None:
+        rj = residuals_and_jacobian(residuals, y)[0](flat)
+    r, J = (np.asarray(a, float) for a in rj)
     m, p = J.shape
     m = m if count is None else min(m, int(count))
     s2 = float(r @ r) / max(m - p, 1)
@@ -826,7 +923,8 @@ def fit(
             def res(y, params_of=params_of, objective=objective):
                 return objective.residuals(params_of(y)).astype(_float_dtype())
 
-            stage_std = _gauss_newton_std(res, {n: y_all[n] for n in snames}, snames, objective.count)
+            stage_std = _gauss_newton_std(res, {n: y_all[n] for n in snames}, snames, objective.count,
+                                          rj=outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
 
     final_params = apply_unconstrained(model, params, names, y_all)
@@ -860,11 +958,12 @@ def fit(
 def _solve(method, objective: Objective, params_of, y0, *, steps, rtol, atol, progress, offset, learning_rates,
            lr_decay, xtol, patience, grad, seed, names) -> _StageOutcome:
     dtype = _float_dtype()
-    if method == "lm":
+    if method in ("lm", "lm-optimistix"):
         def residuals(y):
             return objective.residuals(params_of(y)).astype(dtype)
 
-        return _run_lm(residuals, y0, max_steps=steps, rtol=rtol, atol=atol, progress=progress, offset=offset)
+        run = _run_lm if method == "lm" else _run_lm_optimistix
+        return run(residuals, y0, max_steps=steps, rtol=rtol, atol=atol, progress=progress, offset=offset)
     if method == "bfgs":
         def loss(y):
             return objective.loss(params_of(y)).astype(dtype)

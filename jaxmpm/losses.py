@@ -321,7 +321,7 @@ def _probe_term(model: Model, obs: Observation, until: float | None, frames: int
     pv = np.asarray(obs.probe_values, float)
     keep = np.isfinite(pv) & np.isfinite(pt) & (pt >= 0)
     if until is not None:
-        keep &= pt <= until + 1e-9
+        keep &= pt <= until + 1e-4 * model.frame_dt
     if not keep.any():
         raise ObservationError("the observed probe values are all NaN (or outside the fitted time window)")
     dtype = model.bodies[0].x0.dtype
@@ -404,7 +404,7 @@ def make_fit_renderer(kind, model: Model, **options):
     return make_renderer(kind, corners, spacing=h, **options)
 
 
-def _check_cameras(obs: Observation):
+def _check_cameras(obs: Observation, dtype=jnp.float32):
     """Cameras from the observation, with clear errors for inconsistent image sizes."""
     from .render import Camera
 
@@ -422,7 +422,7 @@ def _check_cameras(obs: Observation):
                 f"view {v}: the principal point ({cx:g}, {cy:g}) lies outside the {W}x{H} images: the masks/images "
                 f"do not have the size the intrinsics were made for (expected about {2 * cx:g}x{2 * cy:g})"
             )
-    return Camera(K, np.asarray(obs.cam_to_world, float), W, H)
+    return Camera(K, np.asarray(obs.cam_to_world, float), W, H, dtype=dtype)
 
 
 def _image_terms(
@@ -431,9 +431,8 @@ def _image_terms(
     from .render import render_pixels
     from .render.losses import as_unit_float
 
-    cams = _check_cameras(obs)
     dtype = model.bodies[0].x0.dtype
-    cams = cams.astype(dtype)
+    cams = _check_cameras(obs, dtype)
     V, H, W = cams.num_views, cams.height, cams.width
     times = np.asarray(obs.times, float)[sel]
     T = len(times)
@@ -685,13 +684,13 @@ def build_objective(
     times = np.asarray(observation.times, float)
     if np.any(times < 0):
         raise ObservationError("observed times must be >= 0 (seconds since the scene's start)")
-    sel = np.ones(len(times), bool) if until is None else times <= until + 1e-9
+    sel = np.ones(len(times), bool) if until is None else times <= until + 1e-4 * model.frame_dt
     if not sel.any():
         raise ObservationError(f"no observed time lies within the window t <= {until:g} s")
     t_probe = []
     if w["probes"] > 0:
         pt = np.asarray(observation.probe_times, float)
-        ok = np.isfinite(pt) & (pt >= 0) & ((pt <= until + 1e-9) if until is not None else True)
+        ok = np.isfinite(pt) & (pt >= 0) & ((pt <= until + 1e-4 * model.frame_dt) if until is not None else True)
         t_probe = pt[ok].tolist()
     t_data = times[sel].tolist() if any(w[k] > 0 for k in ("tracks", "silhouette", "rgb")) else []
     t_all = np.asarray(t_data + t_probe, float)
