@@ -178,6 +178,39 @@ def _error_text(name, value, truth) -> str:
     return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
 
 
+# --------------------------------------------------------------------------- discover
+
+
+def cmd_discover(args) -> int:
+    """``jaxmpm discover SCENE OBS.npz --out DIR``: the discrepancy workflow (report.md, report.json, plots)."""
+    from .discover import discover
+    from .discover_report import write_report
+    from .observe import load_observation
+    from .scene import load_scene
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise JaxmpmError(f"--out {args.out} is a file; give a folder")
+    scene = load_scene(args.scene, dtype=_dtype(args))
+    obs = load_observation(args.observations)
+    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else None
+    exts = [e.strip() for e in args.extensions.split(",") if e.strip()] if args.extensions else None
+
+    def say(line):
+        if not args.quiet:
+            print(line, file=sys.stderr)
+
+    result = discover(
+        scene.model, scene.params, obs, names=names, extensions=exts, holdout=args.holdout, top=args.top,
+        min_gain=args.min_gain, alpha=args.alpha, max_extensions=args.max_extensions, max_iter=args.max_iter,
+        convergence=not args.no_convergence, noise_floor=args.noise, num_pixels=args.pixels, progress=say,
+    )
+    files = write_report(result, out, title=f"Discrepancy report: {Path(args.scene).name} vs {Path(args.observations).name}")
+    print(result.verdict)
+    print(f"wrote {files['report.md']}, {files['report.json']} and {len(files['plots'])} plots")
+    return 0
+
+
 # --------------------------------------------------------------------------- demo, bench
 
 
@@ -244,6 +277,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("discover", help="show what the model gets wrong, name the cause, extend it, measure the gain")
+    p.add_argument("scene", help="scene file (.toml or .json): the base model and the initial guess")
+    p.add_argument("observations", help="observation file (.npz)")
+    p.add_argument("--out", default="discover_out", help="output folder (default: discover_out)")
+    p.add_argument("--params", default=None, help="comma-separated base parameters to fit (default: the materials')")
+    p.add_argument("--extensions", default=None, help="comma-separated extension ids to consider (default: all)")
+    p.add_argument("--holdout", type=float, default=0.3, help="fraction of the latest observed times held out (default 0.3)")
+    p.add_argument("--top", type=int, default=3, help="extensions refitted per greedy step (default 3)")
+    p.add_argument("--min-gain", type=float, default=0.1, help="smallest held-out gain kept (default 0.1)")
+    p.add_argument("--alpha", type=float, default=0.05, help="level of the likelihood-ratio test (default 0.05)")
+    p.add_argument("--max-extensions", type=int, default=3, help="most extensions added greedily (default 3)")
+    p.add_argument("--max-iter", type=int, default=25, help="Levenberg-Marquardt iterations per fit (default 25)")
+    p.add_argument("--no-convergence", action="store_true", help="skip the dt/2 numerical-error check")
+    p.add_argument("--noise", type=float, default=None, help="known observation noise (RMS, data units)")
+    p.add_argument("--pixels", type=int, default=256, help="pixels per view and frame for silhouettes")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--float64", action="store_true", help="run in float64")
+    p.set_defaults(func=cmd_discover)
 
     p = sub.add_parser("bench", help="performance benchmarks")
     p.add_argument("what", choices=("step",), help="which benchmark")

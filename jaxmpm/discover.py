@@ -1,0 +1,1293 @@
+"""Discrepancy discovery: show what the model gets wrong, name the cause, extend it, measure the gain.
+
+The workflow (:func:`discover`; ``jaxmpm discover SCENE OBS.npz --out DIR``):
+
+1. **Fit the base model** (its material parameters, or the names given) on the *training*
+   part of the data; the rest is held out (default: the last 30 % of the observed times —
+   a forecast; or whole sequences, or camera views).
+2. **Show**: decompose the base model's residual by time phase (free flight, impact,
+   post-contact, settling), region (each collider's contact band, free surface, interior),
+   direction (normal / tangential to the collider, vertical / horizontal) and growth law in
+   time (log-log slope of the centre-of-mass error), and rerun the fit at ``dt / 2`` to
+   separate discretisation error from missing physics (:mod:`jaxmpm.discover_report`).
+3. **Name**: screen every extension of :mod:`jaxmpm.extensions` at its null value with a
+   score test from forward-mode Jacobians (the Gauss–Newton prediction of how much of the
+   training error the extension would remove, base parameters re-adjusted, bounds
+   respected), refit the best few, and keep an extension only when it passes **all** of:
+   held-out gain ``>= min_gain``, a likelihood-ratio test on per-frame errors at level
+   ``alpha`` (one-sided for parameters whose null is a bound), and a held-out improvement
+   larger than the numerical error measured by the ``dt / 2`` check.
+4. **Extend and measure**: the chosen extension's parameters with standard deviations
+   (frame-clustered sandwich covariance), base and extended held-out errors and the gain;
+   greedily add further extensions while the gain stays significant.
+
+**The statistic.** Residuals of particles (or pixels) observed at the same time share the
+same dynamics error, so they are not independent samples. Every residual entry belongs to a
+*group* — one observed frame (tracks, silhouettes) or one frame-length time bin (probes) —
+and is scaled so that the sum of squares over a group is that group's mean squared error.
+Errors are RMS over groups (``sqrt(mean_g MSE_g)``), likelihood-ratio tests use the number
+of training groups ``n`` as the sample size: ``Λ = n ln(RSS_0 / RSS_1)`` against χ² with
+the number of added parameters as degrees of freedom, or the boundary mixture
+``½χ²_0 + ½χ²_1`` (Self & Liang 1987; 5 % critical value 2.71) for one parameter whose null
+is a bound. Temporal correlation between frames is not modelled by the test; it is why the
+held-out (forecast) gain is the primary criterion.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence as _Seq
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import extensions as X
+from .errors import JaxmpmError, ObservationError
+from .fit import LOG10_PARAMS, _leaf, from_unconstrained, get_param, resolve_name, set_param, to_unconstrained
+from .model import Model, Params
+from .observe import Observation
+from .step import simulate
+
+__all__ = [
+    "Sequence",
+    "Candidate",
+    "Discovery",
+    "discover",
+    "default_parameters",
+    "DEFAULT_EXTENSIONS",
+]
+
+#: All extension ids, in the order they are screened.
+DEFAULT_EXTENSIONS = tuple(X.EXTENSIONS)
+
+#: 5 % critical values: chi2 with 1..6 dof, and the boundary mixture (1/2 chi2_0 + 1/2 chi2_1).
+_BOUNDARY_CRIT = 2.705543
+
+
+def _chi2_sf(x: float, dof: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.sf(max(x, 0.0), max(dof, 1)))
+
+
+def p_value(statistic: float, dof: int, boundary: bool) -> float:
+    """p-value of a likelihood-ratio / score statistic: χ²_dof, or the boundary mixture
+    ``½χ²_0 + ½χ²_1`` when one parameter's null value is a bound of its domain."""
+    if boundary and dof == 1:
+        return 0.5 * _chi2_sf(statistic, 1) if statistic > 0 else 1.0
+    return _chi2_sf(statistic, dof)
+
+
+# =========================================================================== inputs
+
+
+@dataclass
+class Sequence:
+    """One observed sequence: the base model, its parameters and the data.
+
+    Attributes:
+        model: the static model.
+        params: the base parameter pytree (the initial guess of the fitted parameters).
+        observation: the data (tracks, masks and/or probes).
+        name: used in reports and for ``holdout_sequences``.
+        probes: extra probe functions ``{name: fn(state, model)}`` for probe data.
+        renderer: a renderer for mask data (default: a volume renderer over the domain;
+            2D scenes are lifted to a thin slab at z = 0).
+    """
+
+    model: Model
+    params: Params
+    observation: Observation
+    name: str = "sequence"
+    probes: dict | None = None
+    renderer: Any = None
+
+
+def default_parameters(model: Model) -> list[str]:
+    """The base parameters fitted by default: each body's required material parameters
+    (PAC-NeRF's), except the bulk modulus ``kappa`` of fluids (a numerical compressibility)."""
+    names = []
+    several = len(model.bodies) > 1
+    for body in model.bodies:
+        for p in type(body.material).required:
+            if p == "kappa":
+                continue
+            names.append(f"{body.name}.{p}" if several else p)
+    return list(dict.fromkeys(names))
+
+
+# =========================================================================== compiled pieces
+# Module-level and keyed on the model's *structure* (equinox filter_jit), so every sequence,
+# candidate and refit with the same scene layout shares one compilation.
+
+
+@eqx.filter_jit
+def _rollout(model, params, frames):
+    traj = simulate(model, params, checkpoint=None, frames=frames)
+    healthy = ~jnp.any(traj.nan) & jnp.all(traj.cfl <= 1.0)
+    return traj.x, traj.v, healthy
+
+
+@eqx.filter_jit
+def _rollout_jvp(model, params, tangent, frames):
+    def f(p):
+        traj = simulate(model, p, checkpoint=None, frames=frames)
+        return traj.x, traj.v
+
+    (x, v), (dx, dv) = jax.jvp(f, (params,), (tangent,))
+    return x, v, dx, dv
+
+
+def _hermite(P, Pdot, times, t0, frame_dt):
+    """Values at ``times - t0`` from per-frame values ``P (F, ...)`` and time derivatives
+    ``Pdot`` (cubic Hermite: C1 in t0, exact at the frames; clamped to the simulated span)."""
+    F = P.shape[0]
+    dtype = P.dtype
+    s = (jnp.asarray(times, dtype) - jnp.asarray(t0, dtype)) / frame_dt
+    s = jnp.clip(s, 0.0, F - 1.0)
+    i0 = jnp.clip(jnp.floor(jax.lax.stop_gradient(s) + 1e-6), 0, F - 2).astype(jnp.int32)
+    u = s - i0.astype(dtype)
+    u2, u3 = u * u, u * u * u
+    h00, h10, h01, h11 = 2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2
+    shape = (-1,) + (1,) * (P.ndim - 1)
+    c = lambda h: h.reshape(shape)  # noqa: E731
+    return (c(h00) * P[i0] + c(h10) * frame_dt * Pdot[i0] + c(h01) * P[i0 + 1] + c(h11) * frame_dt * Pdot[i0 + 1])
+
+
+# =========================================================================== observables
+
+
+class _Observable(eqx.Module):
+    """Residuals of one kind of data (abstract). ``residuals(X, V, t0) -> (M,)``, scaled
+    so that the sum of squares over each group is that group's mean squared error."""
+
+    def residuals(self, X, V, t0):
+        raise NotImplementedError
+
+
+class _TrackResiduals(_Observable):
+    times: jax.Array
+    target: jax.Array
+    valid: jax.Array
+    scale: jax.Array  # (T,) 1/sqrt(count per frame)
+    frame_dt: float = eqx.field(static=True)
+    by_id: bool = eqx.field(static=True)
+
+    def residuals(self, X, V, t0):
+        x = _hermite(X, V, self.times, t0, self.frame_dt)  # (T, N, D)
+        if self.by_id:
+            r = jnp.where(self.valid[..., None], x - self.target, 0.0)
+            return (self.scale[:, None, None] * r).reshape(-1)
+        from .losses import chamfer_residuals
+
+        r = jax.vmap(chamfer_residuals)(x, self.target, self.valid)
+        return (self.scale[:, None] * r).reshape(-1)
+
+
+class _ProbeResiduals(_Observable):
+    times: jax.Array  # (P, Tp)
+    target: jax.Array
+    valid: jax.Array
+    scale: jax.Array  # (P, Tp)
+    mass: jax.Array
+    vol0: jax.Array
+    model: Any
+    fns: tuple = eqx.field(static=True)
+    frame_dt: float = eqx.field(static=True)
+
+    def _frame_values(self, X, V):
+        from .state import make_state
+
+        def one(x, v):
+            st = make_state(x, v, self.mass, self.vol0)
+            vals = [jax.jvp(lambda y, f=f: f(eqx.tree_at(lambda s: s.x, st, y), self.model), (x,), (v,)) for f in self.fns]
+            return jnp.stack([a for a, _ in vals]), jnp.stack([b for _, b in vals])
+
+        return jax.vmap(one)(X, V)  # (F, P) each
+
+    def residuals(self, X, V, t0):
+        P, Pdot = self._frame_values(X, V)
+        out = []
+        for p in range(len(self.fns)):
+            sim = _hermite(P[:, p], Pdot[:, p], self.times[p], t0, self.frame_dt)
+            out.append(jnp.where(self.valid[p], sim - self.target[p], 0.0) * self.scale[p])
+        return jnp.concatenate(out)
+
+
+class _SilhouetteResiduals(_Observable):
+    times: jax.Array
+    target: jax.Array  # (T, V, n) in [0, 1]
+    pixels: jax.Array  # (T, V, n)
+    scale: jax.Array  # (T,)
+    cameras: Any
+    renderer: Any
+    lift: jax.Array  # (L,) z offsets of the lifted layers (2D scenes), empty in 3D
+    frame_dt: float = eqx.field(static=True)
+
+    def positions3(self, x):
+        if x.shape[-1] == 3:
+            return x
+        layers = [jnp.concatenate([x, jnp.full(x.shape[:-1] + (1,), z, x.dtype)], axis=-1) for z in self.lift]
+        return jnp.concatenate(layers, axis=-2)
+
+    def residuals(self, X, V, t0):
+        from .render import render_pixels
+
+        x = _hermite(X, V, self.times, t0, self.frame_dt)
+
+        def one(args):
+            xt, pt, mt = args
+            pred = render_pixels(self.renderer, self.positions3(xt), self.cameras, pt, silhouette_only=True)
+            return pred - mt
+
+        r = jax.lax.map(one, (x, self.pixels, self.target))
+        return (self.scale[:, None, None] * r).reshape(-1)
+
+
+@eqx.filter_jit
+def _obs_eval(obs, X, V, t0):
+    return obs.residuals(X, V, t0)
+
+
+@eqx.filter_jit
+def _obs_jvp(obs, X, V, t0, dX, dV, dt0):
+    return jax.jvp(obs.residuals, (X, V, t0), (dX, dV, dt0))
+
+
+def _probe_fn(name: str, extra):
+    """A probe function by name: jaxmpm.losses' registry when available, else built-ins."""
+    if extra and name in extra:
+        return extra[name]
+    try:
+        from .losses import probe_function
+
+        return probe_function(name, extra)
+    except ImportError:  # pragma: no cover - losses not available
+        pass
+    import re
+
+    m = re.fullmatch(r"front_([xyz])", name)
+    if m:
+        a = "xyz".index(m.group(1))
+        return lambda st, model: jnp.max(st.x[:, a]) + 0.5 * jnp.max(st.vol0) ** (1.0 / st.dim)
+    raise ObservationError(f"unknown probe {name!r}; pass probes={{{name!r}: fn(state, model)}}")
+
+
+@dataclass
+class _Groups:
+    """Per residual entry its group; per group its time, kind, view and sequence."""
+
+    entry_group: np.ndarray
+    time: np.ndarray
+    kind: list
+    label: list
+    sequence: np.ndarray
+
+
+def _track_observable(model, obs: Observation, dtype):
+    pos = np.asarray(obs.positions, float)
+    T, N, D = pos.shape
+    if D != model.dim:
+        raise ObservationError(f"observed positions are {D}-D but the scene is {model.dim}-D")
+    by_id = obs.point_ids == "particles"
+    if by_id and N != model.num_particles:
+        raise ObservationError(
+            f"observation has point_ids='particles' with {N} points but the scene has {model.num_particles} particles"
+        )
+    valid = ~np.any(np.isnan(pos), axis=-1)
+    count = valid.sum(axis=1) * (D if by_id else 1)
+    if by_id:
+        scale = 1.0 / np.sqrt(np.maximum(count, 1))
+        per_frame = N * D
+    else:
+        scale = 1.0 / np.sqrt(np.maximum(valid.sum(axis=1) + model.num_particles, 1))
+        per_frame = N + model.num_particles
+    o = _TrackResiduals(
+        times=jnp.asarray(obs.times, dtype),
+        target=jnp.asarray(np.where(valid[..., None], pos, 0.0), dtype),
+        valid=jnp.asarray(valid),
+        scale=jnp.asarray(scale, dtype),
+        frame_dt=float(model.frame_dt),
+        by_id=by_id,
+    )
+    groups = np.repeat(np.arange(T), per_frame)
+    return o, groups, np.asarray(obs.times, float), ["tracks"] * T, [f"t={t:.4g}s" for t in obs.times]
+
+
+def _probe_observable(model, params, obs: Observation, extra, dtype, frame_dt):
+    from .model import initial_state
+
+    names = list(obs.probe_names)
+    fns = tuple(_probe_fn(n, extra) for n in names)
+    pt = np.asarray(obs.probe_times, float)
+    pv = np.asarray(obs.probe_values, float)
+    valid = np.isfinite(pt) & np.isfinite(pv) & (pt >= 0)
+    # groups: frame-length time bins of each probe (samples in a bin share one error)
+    bins = np.where(valid, np.floor(np.where(valid, pt, 0.0) / frame_dt + 1e-6).astype(int), -1)
+    gid = np.full(pt.shape, -1)
+    gtime, gkind, glabel = [], [], []
+    for p, n in enumerate(names):
+        for b in np.unique(bins[p][bins[p] >= 0]):
+            sel = bins[p] == b
+            gid[p, sel] = len(gtime)
+            gtime.append(float(np.mean(pt[p, sel])))
+            gkind.append(f"probe:{n}")
+            glabel.append(n)
+    counts = np.bincount(gid[gid >= 0], minlength=len(gtime))
+    scale = np.where(gid >= 0, 1.0 / np.sqrt(np.maximum(counts[np.maximum(gid, 0)], 1)), 0.0)
+    st = initial_state(model, X.strip(params))
+    o = _ProbeResiduals(
+        times=jnp.asarray(np.where(valid, pt, 0.0), dtype),
+        target=jnp.asarray(np.where(valid, pv, 0.0), dtype),
+        valid=jnp.asarray(valid),
+        scale=jnp.asarray(scale, dtype),
+        mass=st.mass,
+        vol0=st.vol0,
+        model=model,
+        fns=fns,
+        frame_dt=float(frame_dt),
+    )
+    entry_group = gid.reshape(-1)  # invalid entries: -1 (weight 0)
+    return o, entry_group, np.asarray(gtime), gkind, glabel
+
+
+def lifted_layers(model) -> np.ndarray:
+    """z offsets of the layers a 2D scene is lifted to for rendering (a slab of 3 particle spacings)."""
+    h = float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** 0.5
+    return np.array([-h, 0.0, h])
+
+
+def silhouette_renderer(model, **options):
+    """A volume renderer covering the scene's domain at the particle spacing (2D scenes: lifted).
+
+    Its level-set silhouettes are softer than the renderer's default (``sharpness = 10``):
+    compared with binary masks this leaves a small error floor at the true parameters but
+    widens the basin in which the Gauss–Newton screen and the refits see a body that is
+    displaced by several pixels.
+    """
+    from .render import VolumeRenderer
+
+    options.setdefault("sharpness", 10.0)
+    dim = model.dim
+    h = float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** (1.0 / dim)
+    lo, hi = np.asarray(model.grid.lo, float), np.asarray(model.grid.hi, float)
+    if dim == 2:
+        lo, hi = np.append(lo, -1.5 * h), np.append(hi, 1.5 * h)
+    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
+    return VolumeRenderer.for_particles(corners, spacing=h, **options)
+
+
+def _silhouette_observable(model, obs: Observation, renderer, dtype, num_pixels: int, seed: int = 0):
+    from .render import Camera
+
+    masks = np.asarray(obs.masks)
+    V, T, H, W = masks.shape
+    cams = Camera(np.asarray(obs.intrinsics, float), np.asarray(obs.cam_to_world, float), W, H).astype(dtype)
+    renderer = renderer if renderer is not None else silhouette_renderer(model)
+    n = int(min(num_pixels, H * W))
+    rng = np.random.default_rng(seed)
+    pix = np.zeros((T, V, n), np.int32)
+    from scipy.ndimage import binary_dilation
+
+    for v in range(V):
+        union = binary_dilation(np.any(masks[v] > 127, axis=0), iterations=max(2, int(0.08 * max(H, W))))
+        cand = np.flatnonzero(union)
+        for t in range(T):
+            k = (3 * n) // 4 if len(cand) else 0
+            a = rng.choice(cand, size=k, replace=k > len(cand)) if k else np.zeros(0, int)
+            b = rng.choice(H * W, size=n - k, replace=False)
+            pix[t, v] = np.concatenate([a, b])
+    flat = masks.reshape(V, T, H * W).transpose(1, 0, 2).astype(float) / 255.0  # (T, V, HW)
+    target = np.take_along_axis(flat, pix, axis=2)
+    o = _SilhouetteResiduals(
+        times=jnp.asarray(obs.times, dtype),
+        target=jnp.asarray(target, dtype),
+        pixels=jnp.asarray(pix),
+        scale=jnp.asarray(np.full(T, 1.0 / math.sqrt(V * n)), dtype),
+        cameras=cams,
+        renderer=renderer,
+        lift=jnp.asarray(lifted_layers(model) if model.dim == 2 else np.zeros(0), dtype),
+        frame_dt=float(model.frame_dt),
+    )
+    groups = np.repeat(np.arange(T), V * n)
+    return o, groups, np.asarray(obs.times, float), ["silhouette"] * T, [f"t={t:.4g}s" for t in obs.times]
+
+
+# =========================================================================== the problem
+
+
+@dataclass
+class _Entry:
+    """One block of the flat parameter vector."""
+
+    name: str
+    kind: str  # "base" | "ext"
+    size: int
+    shape: tuple
+    lower: np.ndarray
+    upper: np.ndarray
+    spec: X.ParamSpec | None = None
+
+    @property
+    def extension(self) -> str | None:
+        return None if self.spec is None else self.spec.extension
+
+
+class _SeqData:
+    def __init__(self, seq: Sequence, candidates, dtype, num_pixels, frames_margin):
+        self.seq = seq
+        self.model = seq.model
+        base = X.strip(seq.params)
+        self.candidates = [e for e in candidates if X.applicable(seq.model, e) is None]
+        self.params = X.enable(seq.model, base, self.candidates)
+        self.specs = [s for e in self.candidates for s in X.parameter_specs(seq.model, base, e)]
+        obs = seq.observation
+        parts = []
+        t_all = [np.asarray(obs.times, float)]
+        if obs.positions is not None:
+            parts.append(_track_observable(seq.model, obs, dtype))
+        if obs.masks is not None:
+            parts.append(_silhouette_observable(seq.model, obs, seq.renderer, dtype, num_pixels))
+        if obs.probe_names is not None:
+            parts.append(_probe_observable(seq.model, base, obs, seq.probes, dtype, seq.model.frame_dt))
+            pt = np.asarray(obs.probe_times, float)
+            t_all.append(pt[np.isfinite(pt)])
+        if not parts:
+            raise ObservationError(f"sequence {seq.name!r}: no tracks, masks or probes to compare with")
+        self.observables = [p[0] for p in parts]
+        tmax = max(float(np.max(t)) for t in t_all if len(t))
+        self.frames = max(3, int(math.ceil(tmax / seq.model.frame_dt - 1e-6)) + 1 + frames_margin)
+        # groups, numbered locally then offset by the problem
+        eg, gt, gk, gl = [], [], [], []
+        for _, egroup, gtime, gkind, glabel in parts:
+            off = len(gt)
+            eg.append(np.where(egroup >= 0, egroup + off, -1))
+            gt += list(gtime)
+            gk += list(gkind)
+            gl += list(glabel)
+        self.entry_group = np.concatenate(eg)
+        self.group_time = np.asarray(gt, float)
+        self.group_kind = gk
+        self.group_label = gl
+
+
+class _Problem:
+    """The flat parameter vector over all sequences, residuals and forward-mode Jacobians."""
+
+    def __init__(self, sequences, names, candidates, num_pixels, dtype):
+        self.dtype = dtype
+        margin = 2 if "time_offset" in candidates else 0
+        self.seqs = [_SeqData(s, candidates, dtype, num_pixels, margin) for s in sequences]
+        self.candidates = [e for e in candidates if any(e in sd.candidates for sd in self.seqs)]
+        # groups
+        eg, gt, gk, gl, gs = [], [], [], [], []
+        for i, sd in enumerate(self.seqs):
+            off = len(gt)
+            eg.append(np.where(sd.entry_group >= 0, sd.entry_group + off, -1))
+            gt += list(sd.group_time)
+            gk += sd.group_kind
+            gl += sd.group_label
+            gs += [i] * len(sd.group_time)
+        self.groups = _Groups(np.concatenate(eg), np.asarray(gt), gk, gl, np.asarray(gs))
+        self.num_groups = len(gt)
+        # parameter layout
+        self.entries: list[_Entry] = []
+        self.paths = []  # per base entry: per sequence its path (or None)
+        for n in names:
+            paths = []
+            shape = None
+            for sd in self.seqs:
+                try:
+                    path = resolve_name(sd.model, sd.params, n)
+                except JaxmpmError:
+                    path = None
+                paths.append(path)
+                if path is not None and shape is None:
+                    shape = tuple(np.shape(get_param(sd.params, path)))
+            if shape is None:
+                raise JaxmpmError(f"parameter {n!r} names nothing in any sequence")
+            size = int(np.prod(shape)) if shape else 1
+            lo, hi = -np.inf, np.inf
+            if _leaf(n) == "nu":  # keep the tanh map out of saturation (where its slope vanishes)
+                from .fit import NU_BOUNDS
+
+                mid, half = (NU_BOUNDS[0] + NU_BOUNDS[1]) / 2, (NU_BOUNDS[1] - NU_BOUNDS[0]) / 2
+                lo, hi = mid - 2.5 * half, mid + 2.5 * half
+            self.entries.append(_Entry(n, "base", size, shape, np.full(size, lo), np.full(size, hi)))
+            self.paths.append(paths)
+        seen = {}
+        for sd in self.seqs:
+            for s in sd.specs:
+                if s.name not in seen:
+                    seen[s.name] = s
+                else:  # the same name in several sequences: the tighter bounds
+                    t = seen[s.name]
+                    lo = max(x for x in (t.lower, s.lower) if x is not None) if (t.lower is not None or s.lower is not None) else None
+                    hi = min(x for x in (t.upper, s.upper) if x is not None) if (t.upper is not None or s.upper is not None) else None
+                    seen[s.name] = X.ParamSpec(t.extension, t.key, t.shape, lo, hi, t.unit, t.scale)
+        for e in self.candidates:
+            for s in seen.values():
+                if s.extension != e:
+                    continue
+                lo = np.full(s.size, -np.inf if s.lower is None else s.lower)
+                hi = np.full(s.size, np.inf if s.upper is None else s.upper)
+                self.entries.append(_Entry(s.name, "ext", s.size, s.shape, lo, hi, s))
+        self.slices = {}
+        i = 0
+        for en in self.entries:
+            self.slices[en.name] = slice(i, i + en.size)
+            i += en.size
+        self.size = i
+        self.lower = np.concatenate([en.lower for en in self.entries])
+        #: largest change per LM iteration (optimisation space): a decade for log10 parameters,
+        #: 0.5 for nu, 10 typical magnitudes for extension offsets, else 10 times the value
+        caps = []
+        for en in self.entries:
+            if en.kind == "ext":
+                caps.append(np.full(en.size, 10.0 * en.spec.scale))
+            elif _leaf(en.name) in LOG10_PARAMS:
+                caps.append(np.ones(en.size))
+            elif _leaf(en.name) == "nu":
+                caps.append(np.full(en.size, 0.5))
+            else:
+                sd, path = next((sd, p) for sd, p in zip(self.seqs, self.paths[len(caps)]) if p is not None)
+                v = np.abs(np.ravel(np.asarray(get_param(sd.params, path), float)))
+                caps.append(np.maximum(10.0 * v, 1.0))
+        self.max_step = np.concatenate(caps)
+        self.upper = np.concatenate([en.upper for en in self.entries])
+        self.evaluations = 0
+        self.jvps = 0
+
+    # ---- vectors
+
+    def initial(self) -> np.ndarray:
+        th = np.zeros(self.size)
+        for en, paths in zip(self.entries, self.paths):
+            sd, path = next((sd, p) for sd, p in zip(self.seqs, paths) if p is not None)
+            v = np.asarray(to_unconstrained(en.name, jnp.asarray(get_param(sd.params, path), jnp.float64)))
+            th[self.slices[en.name]] = np.ravel(v)
+        return th
+
+    def columns(self, names) -> np.ndarray:
+        return np.concatenate([np.arange(self.slices[n].start, self.slices[n].stop) for n in names]) if names else np.zeros(0, int)
+
+    def base_names(self) -> list[str]:
+        return [en.name for en in self.entries if en.kind == "base"]
+
+    def ext_names(self, extension: str) -> list[str]:
+        return [en.name for en in self.entries if en.kind == "ext" and en.extension == extension]
+
+    def entry(self, name) -> _Entry:
+        return next(en for en in self.entries if en.name == name)
+
+    def unpack(self, theta, i: int) -> Params:
+        """The parameter pytree of sequence ``i`` at ``theta`` (traceable)."""
+        sd = self.seqs[i]
+        p = sd.params
+        for en, paths in zip(self.entries, self.paths):
+            path = paths[i]
+            if path is None:
+                continue
+            leaf = get_param(p, path)
+            val = from_unconstrained(en.name, theta[self.slices[en.name]])
+            p = set_param(p, path, jnp.reshape(val, jnp.shape(leaf)).astype(jnp.asarray(leaf).dtype))
+        ext = {k: dict(v) for k, v in p["extensions"].items()}
+        dtype = jnp.asarray(p["gravity"]).dtype
+        for s in sd.specs:
+            ext[s.extension][s.key] = jnp.reshape(theta[self.slices[s.name]], s.shape).astype(dtype)
+        p = dict(p)
+        p["extensions"] = ext
+        return p
+
+    def physical(self, name, y):
+        """Optimisation variable -> physical value (extension offsets are linear)."""
+        return from_unconstrained(name, y) if self.entry(name).kind == "base" else y
+
+    def values(self, theta) -> dict[str, np.ndarray]:
+        """Physical values of every entry."""
+        out = {}
+        for en in self.entries:
+            v = np.asarray(self.physical(en.name, jnp.asarray(theta[self.slices[en.name]], jnp.float64)))
+            out[en.name] = v.reshape(en.shape) if en.shape else v.reshape(())
+        return out
+
+    # ---- evaluation
+
+    def _t0(self, params):
+        t0 = X.time_offset(params)
+        return jnp.zeros((), self.dtype) if t0 is None else jnp.asarray(t0).astype(self.dtype)
+
+    def trajectories(self, theta, substeps_factor: int = 1):
+        out = []
+        for i, sd in enumerate(self.seqs):
+            p = self.unpack(jnp.asarray(theta), i)
+            model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
+            x, v, ok = _rollout(model, p, sd.frames)
+            out.append((x, v, bool(ok), p))
+        return out
+
+    def residuals(self, theta, substeps_factor: int = 1, trajectories=None) -> np.ndarray:
+        self.evaluations += 1
+        trajs = trajectories or self.trajectories(theta, substeps_factor)
+        rs = []
+        for sd, (x, v, ok, p) in zip(self.seqs, trajs):
+            t0 = self._t0(p)
+            parts = [np.asarray(_obs_eval(o, x, v, t0), float) for o in sd.observables]
+            sd.sizes = [len(q) for q in parts]
+            r = np.concatenate(parts)
+            if not ok:
+                r = np.full_like(r, np.nan)
+            rs.append(r)
+        r = np.concatenate(rs)
+        return np.where(self.groups.entry_group >= 0, r, 0.0)
+
+    def jacobian(self, theta, cols) -> np.ndarray:
+        """Columns ``cols`` of the residual Jacobian (one forward-mode rollout each)."""
+        theta = jnp.asarray(theta, jnp.float64)
+        M = len(self.groups.entry_group)
+        J = np.zeros((M, len(cols)))
+        for j, c in enumerate(cols):
+            e = jnp.zeros_like(theta).at[c].set(1.0)
+            blocks = []
+            for i, sd in enumerate(self.seqs):
+                p, tp = jax.jvp(lambda th, i=i: self.unpack(th, i), (theta,), (e,))
+                tp = jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
+                depends = any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp))
+                t0, dt0 = self._t0(p), self._t0(tp)
+                if not depends:
+                    blocks.append(np.zeros(sum(sd.sizes)))
+                    continue
+                self.jvps += 1
+                x, v, dx, dv = _rollout_jvp(sd.model, p, tp, sd.frames)
+                for o in sd.observables:
+                    _, dr = _obs_jvp(o, x, v, t0, dx, dv, dt0)
+                    blocks.append(np.asarray(dr, float))
+            J[:, j] = np.concatenate(blocks)
+        J[self.groups.entry_group < 0] = 0.0
+        return J
+
+    # ---- errors
+
+    def group_mse(self, r) -> np.ndarray:
+        g = self.groups.entry_group
+        ok = g >= 0
+        return np.bincount(g[ok], weights=r[ok] ** 2, minlength=self.num_groups)
+
+    def error(self, r, mask) -> float:
+        """RMS over the groups in ``mask`` of the per-group RMS error."""
+        mse = self.group_mse(r)
+        return float(np.sqrt(np.mean(mse[mask]))) if np.any(mask) else float("nan")
+
+
+# =========================================================================== least squares
+
+
+@dataclass
+class _Fit:
+    theta: np.ndarray
+    r: np.ndarray
+    loss: float
+    iterations: int
+    free: list
+    history: list
+    cov: np.ndarray | None = None
+    J: np.ndarray | None = None
+
+
+def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, tol=1e-5, progress=None) -> _Fit:
+    """Levenberg–Marquardt with Marquardt scaling on the training residuals, bounds by
+    projection with an active set (parameters pinned at a bound whose step points outwards)."""
+    cols = problem.columns(free_names)
+    lo, hi = problem.lower[cols], problem.upper[cols]
+    cap = problem.max_step[cols]
+    theta = np.array(theta0, float)
+    theta[cols] = np.clip(theta[cols], lo, hi)
+    w = train_entries.astype(float)
+    r = problem.residuals(theta)
+    loss = float(np.sum((w * r) ** 2))
+    if not np.isfinite(loss):
+        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
+                          "use more substeps or a better initial guess")
+    history = [loss]
+    if len(cols) == 0:  # nothing to fit (e.g. a base model whose parameters are all known)
+        return _Fit(theta=theta, r=r, loss=loss, iterations=0, free=list(free_names), history=history)
+    lam = 1e-3
+    it = 0
+    J = None
+    for it in range(1, max_iter + 1):
+        J = problem.jacobian(theta, cols)
+        Jw = w[:, None] * J
+        A = Jw.T @ Jw
+        g = Jw.T @ (w * r)
+        diag = np.diag(A)
+        d = np.maximum(diag, 1e-12 * max(np.max(diag), 1e-300))
+        # directions the training data carry no information about stay where they are
+        informative = diag > 1e-10 * max(np.max(diag), 1e-300)
+        improved = False
+        for _ in range(10):
+            free = informative.copy()
+            for _pass in range(len(cols) + 1):
+                step = np.zeros(len(cols))
+                if free.any():
+                    Af = A[np.ix_(free, free)] + lam * np.diag(d[free])
+                    try:
+                        step[free] = -np.linalg.solve(Af, g[free])
+                    except np.linalg.LinAlgError:
+                        step[free] = -np.linalg.lstsq(Af, g[free], rcond=None)[0]
+                big = np.max(np.abs(step) / cap)
+                if big > 1.0:  # trust region: at most `cap` per parameter and iteration
+                    step = step / big
+                new = theta[cols] + step
+                out = ((new < lo) & (step < 0) & np.isclose(theta[cols], lo)) | ((new > hi) & (step > 0) & np.isclose(theta[cols], hi))
+                if not (out & free).any():
+                    break
+                free &= ~out
+            trial = theta.copy()
+            trial[cols] = np.clip(theta[cols] + step, lo, hi)
+            r_t = problem.residuals(trial)
+            loss_t = float(np.sum((w * r_t) ** 2))
+            if np.isfinite(loss_t) and loss_t < loss:
+                rel = (loss - loss_t) / max(loss, 1e-300)
+                theta, r, loss = trial, r_t, loss_t
+                lam = max(lam / 3.0, 1e-9)
+                improved = True
+                break
+            lam *= 4.0
+        history.append(loss)
+        if progress is not None:
+            progress(it, loss)
+        if not improved or rel < tol:
+            break
+    return _Fit(theta=theta, r=r, loss=loss, iterations=it, free=list(free_names), history=history, J=J)
+
+
+def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:
+    """Frame-clustered sandwich covariance of the free parameters (optimisation space):
+    ``A^-1 (sum_g s_g s_g^T) A^-1 G/(G-p)`` with ``s_g = J_g^T r_g`` over training groups g;
+    falls back to ``s^2 A^-1`` (``s^2 = RSS / (G - p)``) with too few groups."""
+    cols_all = problem.columns(fit.free)
+    th = fit.theta[cols_all]
+    # parameters pinned at a bound are held fixed (their std is reported as 0)
+    pinned = np.isclose(th, problem.lower[cols_all], atol=1e-12) | np.isclose(th, problem.upper[cols_all], atol=1e-12)
+    cols = cols_all[~pinned]
+    full = np.zeros((len(cols_all), len(cols_all)))
+    if len(cols) == 0:
+        return full
+    J = problem.jacobian(fit.theta, cols)
+    w = train_entries.astype(float)
+    Jw, rw = w[:, None] * J, w * fit.r
+    A = Jw.T @ Jw
+    Ainv = np.linalg.pinv(A)
+    g = problem.groups.entry_group
+    train_groups = np.unique(g[(g >= 0) & train_entries])
+    G, p = len(train_groups), len(cols)
+    if G > p + 1:
+        S = np.zeros((G, p))
+        idx = np.searchsorted(train_groups, g[(g >= 0) & train_entries])
+        np.add.at(S, idx, Jw[(g >= 0) & train_entries] * rw[(g >= 0) & train_entries][:, None])
+        B = S.T @ S * G / (G - p)
+        cov = Ainv @ B @ Ainv
+    else:
+        cov = float(rw @ rw) / max(G - p, 1) * Ainv
+    keep = np.flatnonzero(~pinned)
+    full[np.ix_(keep, keep)] = cov
+    return full
+
+
+def _std_physical(problem: _Problem, theta, names, cov) -> dict[str, np.ndarray]:
+    out = {}
+    cols = problem.columns(names)
+    sd_opt = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    k = 0
+    for n in names:
+        en = problem.entry(n)
+        y = jnp.asarray(theta[problem.slices[n]], jnp.float64)
+        slope = np.asarray(jax.vmap(jax.grad(lambda t, n=n: jnp.sum(problem.physical(n, t))))(y))
+        out[n] = (np.abs(slope) * sd_opt[k:k + en.size]).reshape(en.shape) if en.shape else float(np.abs(slope[0]) * sd_opt[k])
+        k += en.size
+    assert k == len(cols)
+    return out
+
+
+# =========================================================================== results
+
+
+@dataclass
+class Candidate:
+    """One screened extension.
+
+    Attributes:
+        id: extension id.
+        score: linearised fraction of the training error (RSS) the extension would remove
+            at its null value (Gauss–Newton, base parameters re-adjusted, bounds respected).
+        score_p: p-value of the score statistic ``n ln(RSS_0 / RSS_lin)``.
+        refit: whether it was refitted.
+        gain: fraction of held-out RMS error removed by the refitted extension.
+        train_error, heldout_error: RMS errors after the refit.
+        lrt: likelihood-ratio statistic ``n ln(RSS_0 / RSS_1)`` on training groups.
+        p_value: its p-value.
+        parameters, std: fitted extension parameters and standard deviations.
+        selected: kept in the extended model.
+        reason: why it was or was not kept.
+        step: the greedy step (1 = first extension added) at which it was evaluated.
+    """
+
+    id: str
+    score: float
+    score_p: float
+    dof: int
+    refit: bool = False
+    gain: float | None = None
+    train_error: float | None = None
+    heldout_error: float | None = None
+    lrt: float | None = None
+    p_value: float | None = None
+    parameters: dict = field(default_factory=dict)
+    std: dict = field(default_factory=dict)
+    selected: bool = False
+    reason: str = ""
+    step: int = 1
+
+
+def _plain(v):
+    v = np.asarray(v, float)
+    return float(v) if v.ndim == 0 else v.tolist()
+
+
+@dataclass
+class Discovery:
+    """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``)."""
+
+    discrepancy: bool
+    cause: str | None
+    causes: list
+    parameters: dict
+    std: dict
+    gain: float
+    base_error: float
+    extended_error: float
+    base_train_error: float
+    extended_train_error: float
+    candidates: list
+    base_values: dict
+    base_std: dict
+    extended_values: dict
+    convergence: dict
+    verdict: str
+    settings: dict
+    seconds: float
+    not_applicable: dict
+    # internals for the report
+    problem: Any = field(default=None, repr=False)
+    base_theta: Any = field(default=None, repr=False)
+    extended_theta: Any = field(default=None, repr=False)
+    train_groups: Any = field(default=None, repr=False)
+    heldout_groups: Any = field(default=None, repr=False)
+    base_history: list = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        """The ``report.json`` contract (DESIGN §5.3) plus extra fields (``details``)."""
+        cands = []
+        for c in self.candidates:
+            cands.append({
+                "id": c.id,
+                "score": float(c.score),
+                "gain": None if c.gain is None else float(c.gain),
+                "parameters": {k: _plain(v) for k, v in c.parameters.items()},
+            })
+        return {
+            "discrepancy": bool(self.discrepancy),
+            "cause": self.cause,
+            "parameters": {k: _plain(v) for k, v in self.parameters.items()},
+            "gain": float(self.gain),
+            "candidates": cands,
+            "base_error": float(self.base_error),
+            "extended_error": float(self.extended_error),
+            "details": {
+                "causes": list(self.causes),
+                "std": {k: _plain(v) for k, v in self.std.items()},
+                "verdict": self.verdict,
+                "base_parameters": {k: _plain(v) for k, v in self.base_values.items()},
+                "base_std": {k: _plain(v) for k, v in self.base_std.items()},
+                "extended_parameters": {k: _plain(v) for k, v in self.extended_values.items()},
+                "base_train_error": float(self.base_train_error),
+                "extended_train_error": float(self.extended_train_error),
+                "candidates": [
+                    {
+                        "id": c.id, "step": c.step, "score": float(c.score), "score_p": float(c.score_p), "dof": c.dof,
+                        "refit": c.refit, "gain": None if c.gain is None else float(c.gain),
+                        "train_error": None if c.train_error is None else float(c.train_error),
+                        "heldout_error": None if c.heldout_error is None else float(c.heldout_error),
+                        "lrt": None if c.lrt is None else float(c.lrt),
+                        "p_value": None if c.p_value is None else float(c.p_value),
+                        "std": {k: _plain(v) for k, v in c.std.items()},
+                        "selected": c.selected, "reason": c.reason,
+                    }
+                    for c in self.candidates
+                ],
+                "convergence": self.convergence,
+                "not_applicable": self.not_applicable,
+                "settings": self.settings,
+                "seconds": float(self.seconds),
+            },
+        }
+
+
+# =========================================================================== the workflow
+
+
+def _holdout_masks(problem: _Problem, holdout, holdout_sequences, holdout_views):
+    g = problem.groups
+    heldout = np.zeros(problem.num_groups, bool)
+    names = [sd.seq.name for sd in problem.seqs]
+    if holdout_sequences:
+        unknown = set(holdout_sequences) - set(names)
+        if unknown:
+            raise JaxmpmError(f"holdout_sequences: no sequence named {sorted(unknown)} (have {names})")
+        for i, n in enumerate(names):
+            if n in holdout_sequences:
+                heldout |= g.sequence == i
+    if holdout and holdout > 0:
+        if not 0 < holdout < 1:
+            raise JaxmpmError(f"holdout must be a fraction in (0, 1), got {holdout}")
+        for i in range(len(problem.seqs)):
+            if names[i] in (holdout_sequences or ()):
+                continue
+            sel = g.sequence == i
+            t = g.time[sel]
+            # hold out the last `holdout` fraction of distinct times (at least one)
+            ut = np.unique(t)
+            k = max(1, int(round(holdout * len(ut))))
+            cut = ut[-k]
+            heldout[np.flatnonzero(sel)[t >= cut]] = True
+    train = ~heldout
+    entry_train = np.zeros(len(g.entry_group), bool)
+    ok = g.entry_group >= 0
+    entry_train[ok] = train[g.entry_group[ok]]
+    if holdout_views:
+        raise JaxmpmError("holdout_views is not supported yet; hold out later times or sequences")
+    if not train.any():
+        raise JaxmpmError("nothing left to train on after the hold-out")
+    return train, heldout, entry_train
+
+
+def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
+    """Gauss–Newton prediction of the training RSS with only the base columns free and with the
+    extension's columns added (bounded least squares). Returns (RSS_base, RSS_ext, step)."""
+    from scipy.optimize import lsq_linear
+
+    Jw, rw = w[:, None] * J, w * r
+    norms = np.linalg.norm(Jw, axis=0)
+    dead = norms <= 1e-5 * max(np.max(norms), 1e-300)  # no information (e.g. a slip plane's tangential motion)
+    Jw = np.where(dead[None, :], 0.0, Jw)
+    norms = np.where(dead, 1.0, norms)
+    b = -rw
+    cb = Jw[:, base_cols_local]
+    if cb.shape[1]:
+        sb = np.linalg.lstsq(cb / norms[base_cols_local], b, rcond=None)[0]
+        rss_b = float(np.sum((cb / norms[base_cols_local] @ sb - b) ** 2))
+    else:
+        rss_b = float(b @ b)
+    cols = np.concatenate([base_cols_local, ext_cols_local]).astype(int)
+    A = Jw[:, cols] / norms[cols]
+    lb = np.concatenate([np.full(len(base_cols_local), -np.inf), lo * norms[ext_cols_local]])
+    ub = np.concatenate([np.full(len(base_cols_local), np.inf), hi * norms[ext_cols_local]])
+    lb = np.minimum(lb, 0.0)
+    ub = np.maximum(ub, 0.0)
+    res = lsq_linear(A, b, bounds=(lb, ub), method="bvls" if A.shape[1] < 40 else "trf")
+    rss_e = float(np.sum((A @ res.x - b) ** 2))
+    step = res.x / norms[cols]
+    return rss_b, min(rss_e, rss_b), step[len(base_cols_local):]
+
+
+def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter):
+    """Fit base + extension from two starts and keep the better training loss: the current fit
+    (base parameters may have compensated for the missing physics and sit in a poor basin) and
+    the scene's own values of the base parameters; the extension starts at its linearised
+    (Gauss–Newton) estimate when that beats its null value."""
+    starts = [current.theta.copy()]
+    alt = current.theta.copy()
+    base_cols = problem.columns([n for n in current.free if problem.entry(n).kind == "base"])
+    alt[base_cols] = theta_initial[base_cols]
+    if not np.allclose(alt, starts[0]):
+        starts.append(alt)
+    best, err = None, None
+    for start in starts:
+        guess = start.copy()
+        guess[cols] = np.clip(start[cols] + lin_step, problem.lower[cols], problem.upper[cols])
+        r_g = problem.residuals(guess)
+        loss_g = float(np.sum((entry_train * r_g) ** 2))
+        r_s = problem.residuals(start)
+        loss_s = float(np.sum((entry_train * r_s) ** 2))
+        if np.isfinite(loss_g) and (not np.isfinite(loss_s) or loss_g < loss_s):
+            start = guess
+        try:
+            f = _lm(problem, start, free, entry_train, max_iter=max_iter)
+        except JaxmpmError as e:
+            err = str(e)
+            continue
+        if best is None or f.loss < best.loss:
+            best = f
+    return best if best is not None else err
+
+
+def discover(
+    sequences: Sequence | _Seq[Sequence] | Model,
+    params: Params | None = None,
+    observation: Observation | None = None,
+    *,
+    names: list[str] | None = None,
+    extensions: _Seq[str] | None = None,
+    holdout: float = 0.3,
+    holdout_sequences: _Seq[str] | None = None,
+    holdout_views=None,
+    top: int = 3,
+    min_gain: float = 0.1,
+    alpha: float = 0.05,
+    max_extensions: int = 3,
+    max_iter: int = 25,
+    convergence: bool = True,
+    noise_floor: float | None = None,
+    num_pixels: int = 256,
+    progress: Callable[[str], None] | None = None,
+) -> Discovery:
+    """Run the discrepancy workflow (see the module docstring).
+
+    Arguments:
+        sequences: a :class:`Sequence` or a list of them (sharing parameter names); or a
+            model, with ``params`` and ``observation`` given separately.
+        names: base parameters to fit (default :func:`default_parameters` of the first model).
+        extensions: extension ids to consider (default: all; inapplicable ones are listed in
+            the result's ``not_applicable``).
+        holdout: fraction of the latest observed times held out in every sequence (forecast).
+        holdout_sequences: names of sequences held out entirely (fit on the others).
+        top: how many of the best-scoring extensions are refitted at each greedy step.
+        min_gain: smallest held-out gain (fraction of held-out RMS error removed) kept.
+        alpha: level of the likelihood-ratio test.
+        max_extensions: most extensions added greedily.
+        max_iter: Levenberg–Marquardt iterations per fit.
+        convergence: rerun the fitted base model at ``dt / 2`` (numerical-error check).
+        noise_floor: observation noise (RMS, in the data's units) if known: a base model whose
+            held-out error is within 1.5 times it has nothing to explain.
+        num_pixels: pixels per view and frame for silhouettes.
+        progress: optional callback receiving one line per stage.
+
+    Returns:
+        A :class:`Discovery`; :func:`jaxmpm.discover_report.write_report` turns it into
+        ``report.md``, ``report.json`` and plots.
+    """
+    start = _time.perf_counter()
+    say = progress or (lambda s: None)
+    if isinstance(sequences, Model):
+        if params is None or observation is None:
+            raise JaxmpmError("discover(model, params, observation): give params and observation")
+        sequences = [Sequence(sequences, params, observation)]
+    elif isinstance(sequences, Sequence):
+        sequences = [sequences]
+    sequences = list(sequences)
+    if not sequences:
+        raise JaxmpmError("no sequences to discover from")
+    dtype = sequences[0].model.bodies[0].x0.dtype
+    names = list(dict.fromkeys(names)) if names is not None else default_parameters(sequences[0].model)
+    requested = list(extensions) if extensions is not None else list(DEFAULT_EXTENSIONS)
+    for e in requested:
+        if e not in X.EXTENSIONS:
+            raise JaxmpmError(f"unknown extension {e!r}; known: {', '.join(X.EXTENSIONS)}")
+    not_applicable = {}
+    for e in requested:
+        reasons = [X.applicable(s.model, e) for s in sequences]
+        if all(r is not None for r in reasons):
+            not_applicable[e] = reasons[0]
+    problem = _Problem(sequences, names, [e for e in requested if e not in not_applicable], num_pixels, dtype)
+    train, heldout, entry_train = _holdout_masks(problem, holdout, holdout_sequences, holdout_views)
+    n_train = int(train.sum())
+
+    # ---- 1. the base fit
+    say(f"fitting the base model ({', '.join(names)}) on {n_train} training frames; "
+        f"{int(heldout.sum())} held out")
+    theta0 = problem.initial()
+    base = _lm(problem, theta0, problem.base_names(), entry_train, max_iter=max_iter,
+               progress=lambda i, l: say(f"  base fit iteration {i}: training loss {l:.4e}"))
+    base_train_err = problem.error(base.r, train)
+    base_err = problem.error(base.r, heldout) if heldout.any() else base_train_err
+    base_cov = _covariance(problem, base, entry_train)
+    base_values = {n: problem.values(base.theta)[n] for n in problem.base_names()}
+    base_std = _std_physical(problem, base.theta, problem.base_names(), base_cov)
+    say(f"base model: training error {base_train_err:.4g}, held-out error {base_err:.4g}")
+
+    # ---- 2. convergence check (numerical error)
+    conv = {}
+    numerical = 0.0
+    if convergence:
+        say("convergence check: the fitted base model at dt/2")
+        r_half = problem.residuals(base.theta, substeps_factor=2)
+        diff = r_half - base.r
+        numerical = problem.error(diff, heldout if heldout.any() else train)
+        conv = {
+            "dt_factor": 0.5,
+            "heldout_error_dt": base_err,
+            "heldout_error_dt2": problem.error(r_half, heldout) if heldout.any() else problem.error(r_half, train),
+            "numerical_error": numerical,
+            "numerical_fraction": numerical / max(base_err, 1e-300),
+        }
+        say(f"  numerical error (dt vs dt/2): {numerical:.3g} ({100 * conv['numerical_fraction']:.1f} % of the base error)")
+
+    # ---- 3-4. screen, refit, select (greedy)
+    current = base
+    current_names = problem.base_names()
+    current_train_err, current_err = base_train_err, base_err
+    selected: list[str] = []
+    all_cands: list[Candidate] = []
+    remaining = list(problem.candidates)
+    verdict_notes = []
+    if noise_floor is not None and base_err <= 1.5 * noise_floor:
+        verdict_notes.append(f"the base model's held-out error {base_err:.3g} is within 1.5x the noise floor {noise_floor:.3g}")
+        remaining = []
+    step_no = 0
+    ext_cov = None
+    while remaining and len(selected) < max_extensions:
+        step_no += 1
+        say(f"step {step_no}: screening {len(remaining)} extensions at their null values (score test)")
+        base_cols = problem.columns(current_names)
+        ext_cols = {e: problem.columns(problem.ext_names(e)) for e in remaining}
+        all_cols = np.concatenate([base_cols] + [ext_cols[e] for e in remaining])
+        J = problem.jacobian(current.theta, all_cols)
+        w = entry_train.astype(float)
+        local = {c: i for i, c in enumerate(all_cols)}
+        b_loc = np.array([local[c] for c in base_cols], int)
+        cands = []
+        for e in remaining:
+            e_loc = np.array([local[c] for c in ext_cols[e]], int)
+            lo = problem.lower[ext_cols[e]] - current.theta[ext_cols[e]]
+            hi = problem.upper[ext_cols[e]] - current.theta[ext_cols[e]]
+            rss_b, rss_e, lin_step = _linear_screen(J, current.r, w, b_loc, e_loc, lo, hi)
+            score = (rss_b - rss_e) / max(rss_b, 1e-300)
+            stat = n_train * math.log(max(rss_b, 1e-300) / max(rss_e, 1e-300))
+            specs = [problem.entry(n).spec for n in problem.ext_names(e)]
+            dof = int(sum(s.size for s in specs))
+            boundary = dof == 1 and specs[0].bounded
+            c = Candidate(id=e, score=float(score), score_p=p_value(stat, dof, boundary), dof=dof, step=step_no)
+            c._lin = lin_step  # type: ignore[attr-defined]
+            c._boundary = boundary  # type: ignore[attr-defined]
+            cands.append(c)
+        cands.sort(key=lambda c: -c.score)
+        for c in cands:
+            say(f"  {c.id:18s} score {c.score:7.4f}  p {c.score_p:.3g}")
+        best_cand, best_fit = None, None
+        for c in cands[:top]:
+            if c.score <= 1e-9:
+                c.reason = "no predicted improvement"
+                continue
+            say(f"  refitting base + {c.id}")
+            free = current_names + problem.ext_names(c.id)
+            f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c._lin,  # type: ignore[attr-defined]
+                       entry_train, max_iter)
+            if isinstance(f, str):
+                c.reason = f"refit failed: {f}"
+                continue
+            c.refit = True
+            c.train_error = problem.error(f.r, train)
+            c.heldout_error = problem.error(f.r, heldout) if heldout.any() else c.train_error
+            c.gain = 1.0 - c.heldout_error / max(current_err, 1e-300)
+            rss0, rss1 = current.loss, f.loss
+            c.lrt = n_train * math.log(max(rss0, 1e-300) / max(rss1, 1e-300))
+            c.p_value = p_value(c.lrt, c.dof, c._boundary)  # type: ignore[attr-defined]
+            vals = problem.values(f.theta)
+            c.parameters = {n: vals[n] for n in problem.ext_names(c.id)}
+            try:
+                cov = _covariance(problem, f, entry_train)
+                stds = _std_physical(problem, f.theta, free, cov)
+                c.std = {n: stds[n] for n in problem.ext_names(c.id)}
+            except Exception:  # noqa: BLE001 - diagnostics only
+                cov, c.std = None, {}
+            c._fit, c._cov = f, cov  # type: ignore[attr-defined]
+            improvement = current_err - c.heldout_error
+            reasons = []
+            if c.gain < min_gain:
+                reasons.append(f"held-out gain {c.gain:.1%} < {min_gain:.0%}")
+            if not c.p_value < alpha:
+                reasons.append(f"likelihood-ratio p = {c.p_value:.3g} >= {alpha}")
+            if convergence and improvement <= numerical:
+                reasons.append(f"the improvement {improvement:.3g} is within the numerical error {numerical:.3g}")
+            c.reason = "; ".join(reasons) if reasons else "passes"
+            say(f"    {c.id}: held-out gain {c.gain:.1%}, LRT {c.lrt:.3g} (p {c.p_value:.3g}) -> {c.reason}")
+            if not reasons and (best_cand is None or c.heldout_error < best_cand.heldout_error):
+                best_cand, best_fit = c, f
+        for c in cands[top:]:
+            c.reason = f"not refitted (score rank > {top})"
+        all_cands += cands
+        if best_cand is None:
+            break
+        best_cand.selected = True
+        best_cand.reason = "selected: " + best_cand.reason
+        selected.append(best_cand.id)
+        current = best_fit
+        ext_cov = best_cand._cov  # type: ignore[attr-defined]
+        current_names = current_names + problem.ext_names(best_cand.id)
+        current_train_err, current_err = best_cand.train_error, best_cand.heldout_error
+        remaining = [e for e in remaining if e != best_cand.id]
+
+    # ---- results
+    discrepancy = bool(selected)
+    values = problem.values(current.theta)
+    parameters = {n: values[n] for e in selected for n in problem.ext_names(e)}
+    std = {}
+    if selected and ext_cov is not None:
+        stds = _std_physical(problem, current.theta, current_names, ext_cov)
+        std = {n: stds[n] for n in parameters}
+    gain = 1.0 - current_err / max(base_err, 1e-300) if discrepancy else 0.0
+    if discrepancy:
+        verdict = (f"The base model misses {_describe(selected)}: adding it removes {gain:.0%} of the held-out error "
+                   f"({base_err:.3g} -> {current_err:.3g}).")
+    else:
+        why = verdict_notes[0] if verdict_notes else (
+            "no extension removes a significant part of the held-out error" if all_cands else "no extension applies")
+        verdict = f"No significant discrepancy: {why}."
+        if convergence and conv.get("numerical_fraction", 0.0) > 0.5:
+            verdict += (f" The residual is mostly numerical: refining dt changes the prediction by "
+                        f"{conv['numerical_fraction']:.0%} of the error.")
+    # first-step candidates first (the ranked table of the contract), later steps after
+    order = sorted(all_cands, key=lambda c: (c.step, -c.score))
+    settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),
+                    top=top, min_gain=min_gain, alpha=alpha, max_extensions=max_extensions, max_iter=max_iter,
+                    convergence=convergence, noise_floor=noise_floor, train_groups=n_train,
+                    heldout_groups=int(heldout.sum()), sequences=[s.name for s in sequences])
+    for c in order:  # drop private attributes
+        for a in ("_lin", "_boundary", "_fit", "_cov"):
+            if hasattr(c, a):
+                delattr(c, a)
+    return Discovery(
+        discrepancy=discrepancy,
+        cause=selected[0] if selected else None,
+        causes=selected,
+        parameters=parameters,
+        std=std,
+        gain=float(gain),
+        base_error=float(base_err),
+        extended_error=float(current_err if discrepancy else base_err),
+        base_train_error=float(base_train_err),
+        extended_train_error=float(current_train_err),
+        candidates=order,
+        base_values=base_values,
+        base_std=base_std,
+        extended_values={n: values[n] for n in current_names},
+        convergence=conv,
+        verdict=verdict,
+        settings=settings,
+        seconds=_time.perf_counter() - start,
+        not_applicable=not_applicable,
+        problem=problem,
+        base_theta=base.theta,
+        extended_theta=current.theta,
+        train_groups=train,
+        heldout_groups=heldout,
+        base_history=base.history,
+    )
+
+
+def _describe(ids) -> str:
+    return " + ".join(f"{X.EXTENSIONS[e].title} ({e})" for e in ids)
