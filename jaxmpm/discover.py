@@ -61,6 +61,10 @@ __all__ = [
     "DEFAULT_EXTENSIONS",
 ]
 
+def _F():  # noqa: N802 - JAX's default float (float64 only when x64 is enabled)
+    return jnp.result_type(float)
+
+
 #: All extension ids, in the order they are screened.
 DEFAULT_EXTENSIONS = tuple(X.EXTENSIONS)
 
@@ -568,7 +572,7 @@ class _Problem:
         th = np.zeros(self.size)
         for en, paths in zip(self.entries, self.paths):
             sd, path = next((sd, p) for sd, p in zip(self.seqs, paths) if p is not None)
-            v = np.asarray(to_unconstrained(en.name, jnp.asarray(get_param(sd.params, path), jnp.float64)))
+            v = np.asarray(to_unconstrained(en.name, jnp.asarray(get_param(sd.params, path), _F())))
             th[self.slices[en.name]] = np.ravel(v)
         return th
 
@@ -611,7 +615,7 @@ class _Problem:
         """Physical values of every entry."""
         out = {}
         for en in self.entries:
-            v = np.asarray(self.physical(en.name, jnp.asarray(theta[self.slices[en.name]], jnp.float64)))
+            v = np.asarray(self.physical(en.name, jnp.asarray(theta[self.slices[en.name]], _F())))
             out[en.name] = v.reshape(en.shape) if en.shape else v.reshape(())
         return out
 
@@ -621,20 +625,33 @@ class _Problem:
         t0 = X.time_offset(params)
         return jnp.zeros((), self.dtype) if t0 is None else jnp.asarray(t0).astype(self.dtype)
 
-    def trajectories(self, theta, substeps_factor: int = 1):
+    #: sequences that need no rollout in fits (all their groups held out); set by the workflow
+    skip: frozenset = frozenset()
+
+    def trajectories(self, theta, substeps_factor: int = 1, skip=frozenset()):
         out = []
         for i, sd in enumerate(self.seqs):
+            if i in skip:
+                out.append(None)
+                continue
             p = self.unpack(jnp.asarray(theta), i)
             model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
             x, v, ok = _rollout(model, p, sd.frames)
             out.append((x, v, bool(ok), p))
         return out
 
-    def residuals(self, theta, substeps_factor: int = 1, trajectories=None) -> np.ndarray:
+    def residuals(self, theta, substeps_factor: int = 1, trajectories=None, training_only: bool = False) -> np.ndarray:
+        """All residuals at ``theta``; with ``training_only``, sequences whose data are all held
+        out are not simulated (their entries are 0)."""
         self.evaluations += 1
-        trajs = trajectories or self.trajectories(theta, substeps_factor)
+        skip = self.skip if training_only else frozenset()
+        trajs = trajectories or self.trajectories(theta, substeps_factor, skip)
         rs = []
-        for sd, (x, v, ok, p) in zip(self.seqs, trajs):
+        for sd, tr in zip(self.seqs, trajs):
+            if tr is None:
+                rs.append(np.zeros(sum(sd.sizes)))
+                continue
+            x, v, ok, p = tr
             t0 = self._t0(p)
             parts = [np.asarray(_obs_eval(o, x, v, t0), float) for o in sd.observables]
             sd.sizes = [len(q) for q in parts]
@@ -647,13 +664,16 @@ class _Problem:
 
     def jacobian(self, theta, cols) -> np.ndarray:
         """Columns ``cols`` of the residual Jacobian (one forward-mode rollout each)."""
-        theta = jnp.asarray(theta, jnp.float64)
+        theta = jnp.asarray(theta, _F())
         M = len(self.groups.entry_group)
         J = np.zeros((M, len(cols)))
         for j, c in enumerate(cols):
             e = jnp.zeros_like(theta).at[c].set(1.0)
             blocks = []
             for i, sd in enumerate(self.seqs):
+                if i in self.skip:  # held out entirely: no training rows
+                    blocks.append(np.zeros(sum(sd.sizes)))
+                    continue
                 p, tp = jax.jvp(lambda th, i=i: self.unpack(th, i), (theta,), (e,))
                 tp = jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
                 depends = any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp))
@@ -707,13 +727,14 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, to
     theta = np.array(theta0, float)
     theta[cols] = np.clip(theta[cols], lo, hi)
     w = train_entries.astype(float)
-    r = problem.residuals(theta)
+    r = problem.residuals(theta, training_only=True)
     loss = float(np.sum((w * r) ** 2))
     if not np.isfinite(loss):
         raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
                           "use more substeps or a better initial guess")
     history = [loss]
     if len(cols) == 0:  # nothing to fit (e.g. a base model whose parameters are all known)
+        r = problem.residuals(theta) if problem.skip else r
         return _Fit(theta=theta, r=r, loss=loss, iterations=0, free=list(free_names), history=history)
     lam = 1e-3
     it = 0
@@ -748,7 +769,7 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, to
                 free &= ~out
             trial = theta.copy()
             trial[cols] = np.clip(theta[cols] + step, lo, hi)
-            r_t = problem.residuals(trial)
+            r_t = problem.residuals(trial, training_only=True)
             loss_t = float(np.sum((w * r_t) ** 2))
             if np.isfinite(loss_t) and loss_t < loss:
                 rel = (loss - loss_t) / max(loss, 1e-300)
@@ -762,6 +783,8 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, to
             progress(it, loss)
         if not improved or rel < tol:
             break
+    if problem.skip:  # the held-out sequences, once, at the estimate
+        r = problem.residuals(theta)
     return _Fit(theta=theta, r=r, loss=loss, iterations=it, free=list(free_names), history=history, J=J)
 
 
@@ -805,7 +828,7 @@ def _std_physical(problem: _Problem, theta, names, cov) -> dict[str, np.ndarray]
     k = 0
     for n in names:
         en = problem.entry(n)
-        y = jnp.asarray(theta[problem.slices[n]], jnp.float64)
+        y = jnp.asarray(theta[problem.slices[n]], _F())
         slope = np.asarray(jax.vmap(jax.grad(lambda t, n=n: jnp.sum(problem.physical(n, t))))(y))
         out[n] = (np.abs(slope) * sd_opt[k:k + en.size]).reshape(en.shape) if en.shape else float(np.abs(slope[0]) * sd_opt[k])
         k += en.size
@@ -982,7 +1005,7 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
 
     Jw, rw = w[:, None] * J, w * r
     norms = np.linalg.norm(Jw, axis=0)
-    dead = norms <= 1e-5 * max(np.max(norms), 1e-300)  # no information (e.g. a slip plane's tangential motion)
+    dead = norms <= 1e-7 * max(np.max(norms), 1e-300)  # no information (e.g. a slip plane's tangential motion)
     Jw = np.where(dead[None, :], 0.0, Jw)
     norms = np.where(dead, 1.0, norms)
     b = -rw
@@ -1019,9 +1042,9 @@ def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_tr
     for start in starts:
         guess = start.copy()
         guess[cols] = np.clip(start[cols] + lin_step, problem.lower[cols], problem.upper[cols])
-        r_g = problem.residuals(guess)
+        r_g = problem.residuals(guess, training_only=True)
         loss_g = float(np.sum((entry_train * r_g) ** 2))
-        r_s = problem.residuals(start)
+        r_s = problem.residuals(start, training_only=True)
         loss_s = float(np.sum((entry_train * r_s) ** 2))
         if np.isfinite(loss_g) and (not np.isfinite(loss_s) or loss_g < loss_s):
             start = guess
@@ -1105,6 +1128,8 @@ def discover(
     problem = _Problem(sequences, names, [e for e in requested if e not in not_applicable], num_pixels, dtype)
     train, heldout, entry_train = _holdout_masks(problem, holdout, holdout_sequences, holdout_views)
     n_train = int(train.sum())
+    problem.residuals(problem.initial())  # sizes of every sequence's residuals
+    problem.skip = frozenset(i for i in range(len(problem.seqs)) if not np.any(train[problem.groups.sequence == i]))
 
     # ---- 1. the base fit
     say(f"fitting the base model ({', '.join(names)}) on {n_train} training frames; "
