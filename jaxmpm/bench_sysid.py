@@ -274,10 +274,10 @@ def run_case(case: Case, preset: Preset) -> dict:
     start = load_scene(scene_spec(case, preset, guess, velocity=(0.0, 0.0, 0.0)))
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     result = fit(start.model, start.params, obs, names, weights=weights, max_steps=preset.max_steps,
                  num_pixels=preset.pixels, colors=None)
-    seconds = time.perf_counter() - t0
+    seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
     v_err = float(np.linalg.norm(np.asarray(result.values["velocity"], float) - np.asarray(v0)))
     return {
@@ -294,7 +294,9 @@ def run_case(case: Case, preset: Preset) -> dict:
         "message": result.message,
         "iterations": int(result.iterations),
         "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
         "generate_seconds": generate_s,
+        "load_average": os.getloadavg()[0],
         "substeps": int(result.substeps),
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
         "dtype": str(jnp.zeros(()).dtype),
@@ -356,7 +358,7 @@ def summarise(rows: list[dict]) -> str:
         c = r["case"]
         groups.setdefault((c["supervision"], c["mode"], c["material"], c["collider"]), []).append(r)
     head = ["supervision", "mode", "material", "collider", "n", "conv."] + [PARAM_HEADERS[p] for p in PARAM_COLUMNS] + \
-        ["|Δv| m/s", "s / id", "peak MB"]
+        ["|Δv| m/s", "wall s / id", "CPU s / id", "peak MB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     order = {m: i for i, m in enumerate(MATERIALS)}
     for key in sorted(groups, key=lambda k: (SUPERVISION.index(k[0]), MODES.index(k[1]), order[k[2]], k[3])):
@@ -367,6 +369,7 @@ def summarise(rows: list[dict]) -> str:
             cells.append(_fmt_ms(vals, 2 if p == "friction_angle" else 3) if vals else "")
         cells.append(_fmt_ms([r["velocity_error"] for r in rs], 3))
         cells.append(_fmt_ms([r["seconds"] for r in rs], 0))
+        cells.append(_fmt_ms([r.get("cpu_seconds") for r in rs], 0))
         cells.append(_fmt_ms([r["peak_rss_mb"] for r in rs], 0))
         lines.append("| " + " | ".join(cells) + " |")
     if failed:

@@ -521,7 +521,9 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     else:
         message = f"did not converge within {max_steps} iterations"
     y_out = unravel(jnp.asarray(y, flat.dtype))
-    return _StageOutcome(y_out, losses, iterations, converged, message, unhealthy, jacobian=(r, J))
+    # only a stall against unstable trial points calls for a smaller dt: single rejected
+    # unstable trials are the trust region doing its job
+    return _StageOutcome(y_out, losses, iterations, converged, message, stalled and unhealthy, jacobian=(r, J))
 
 def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
     def fn(y, args):  # optimistix's solver interface: (residuals, aux)
@@ -564,10 +566,10 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
             break
     # optimistix returns the last *accepted* point as y (trial points live in the state).
     unhealthy = False
-    if stalled or not converged:
+    if stalled:
         trial = jax.jit(residuals)(state.y_eval)
         unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
-        if unhealthy and stalled:
+        if unhealthy:
             converged = False
     if stalled and not unhealthy:
         message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
@@ -622,7 +624,7 @@ def _run_bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
             break
     y = best[1]
     unhealthy = False
-    if not converged:
+    if bool(done) and not converged:  # the solver gave up (e.g. its line search failed)
         unhealthy = not bool(jnp.isfinite(jax.jit(loss_fn)(state.y_eval)))
     message = f"converged in {iterations} iterations" if converged else f"did not converge within {max_steps} iterations"
     return _StageOutcome(y, losses, iterations, converged, message, unhealthy)

@@ -381,7 +381,8 @@ def _random_pixels(key, cand_table, cand_count, T, V, HW, n, n_uni):
     """Traced version of :func:`_fixed_pixels` (with replacement) for a PRNG key."""
     k1, k2 = jax.random.split(key)
     u = jax.random.uniform(k1, (T, V, n - n_uni))
-    idx = jnp.minimum((u * cand_count[None, :, None]).astype(jnp.int32), cand_count[None, :, None] - 1)
+    count = cand_count[None, :, None]
+    idx = jnp.minimum((u * count.astype(u.dtype)).astype(jnp.int32), count - 1)
     a = jnp.take_along_axis(jnp.broadcast_to(cand_table[None], (T,) + cand_table.shape), idx, axis=2)
     b = jax.random.randint(k2, (T, V, n_uni), 0, HW, dtype=jnp.int32)
     return jnp.concatenate([a, b], axis=-1)

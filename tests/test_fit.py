@@ -31,7 +31,7 @@ def test_fit_recovers_parameters_from_tracks(model):
     traj = simulate(true_scene.model, true_scene.params)
     obs = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x), point_ids="particles")
     start = load_scene(_spec({"model": model, **guess}, model))
-    result = fit(start.model, start.params, obs, names, max_steps=60)
+    result = fit(start.model, start.params, obs, names, max_steps=60, stages=None)
     assert result.loss[-1] < 1e-3 * result.loss[0]
     for name in names:
         est = float(result.values[name])

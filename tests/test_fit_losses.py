@@ -104,7 +104,7 @@ def test_track_residuals_are_zero_at_the_truth_and_scaled(truth):
     loss = float(jax.jit(build_objective(scene.model, shifted).loss)(scene.params))
     assert loss == pytest.approx(1e-4, rel=1e-3)  # mean squared error per point, m^2
     # Chamfer (points that are not particles): also zero at the truth
-    chamfer = build_objective(scene.model, Observation(times=obs.times, positions=obs.positions))
+    chamfer = build_objective(scene.model, Observation(times=obs.times[:3], positions=obs.positions[:3]))
     assert float(jnp.max(jax.jit(chamfer.residuals)(scene.params))) < 1e-5
 
 

@@ -35,30 +35,25 @@ def obs():
     return _observe(_spec())
 
 
-@pytest.mark.parametrize("method", ["adam", "bfgs", "lm-optimistix"])
+@pytest.mark.parametrize("method", ["adam", "bfgs", pytest.param("lm-optimistix", marks=pytest.mark.slow)])
 def test_other_optimisers_reduce_the_loss(obs, method):
     start = load_scene(_spec(mu=20.0))
-    result = fit(start.model, start.params, obs, ["mu"], method=method, stages=None, max_steps=12)
-    assert result.method == method
+    seen = []
+    result = fit(start.model, start.params, obs, ["mu"], method=method, stages=None, max_steps=12,
+                 progress=lambda i, loss: seen.append(loss))
+    assert result.method == method and len(seen) >= 1
     assert result.loss[-1] < 0.5 * result.loss[0]
     err0, err = abs(np.log10(20.0 / 50.0)), abs(np.log10(float(result.values["mu"]) / 50.0))
     assert err < 0.5 * err0, (method, float(result.values["mu"]))
     assert np.isfinite(result.std["mu"])
     if method == "lm-optimistix":
         assert err < 0.01  # (its own tolerance test may need more iterations at float32 precision)
-
-
-def test_adam_uses_pac_nerf_learning_rates(obs):
-    """One Adam step moves log10(mu) by PAC-NeRF's learning rate (Adam's first step is ±lr)."""
-    start = load_scene(_spec(mu=20.0))
-    seen = []
-    fit(start.model, start.params, obs, ["mu"], method="adam", stages=None, max_steps=2, uncertainty=False,
-        progress=lambda i, loss: seen.append(loss))
-    assert ADAM_LEARNING_RATES["mu"] == 0.1 and ADAM_LEARNING_RATES["friction_angle"] == 1.0
-    result = fit(start.model, start.params, obs, ["mu"], method="adam", stages=None, max_steps=2, uncertainty=False)
-    assert len(seen) == 2 and not result.converged and "did not converge" in result.message
-    # the lowest-loss iterate: the first step moved mu up by 10^0.1
-    assert float(result.values["mu"]) == pytest.approx(20.0 * 10**0.1, rel=1e-4)
+    if method == "adam":
+        # PAC-NeRF's learning rates: Adam's first steps move log10(mu) by lr = 0.1 each
+        assert ADAM_LEARNING_RATES["mu"] == 0.1 and ADAM_LEARNING_RATES["friction_angle"] == 1.0
+        assert len(seen) == 12 and not result.converged and "did not converge" in result.message
+        steps = np.log10(float(result.values["mu"]) / 20.0) / 0.1
+        assert 1.0 <= steps <= 12.0 and steps == pytest.approx(round(steps), abs=0.15), steps
 
 
 def test_staged_fit_velocity_first_then_material():
@@ -93,12 +88,7 @@ def test_unstable_start_halves_dt_and_recovers():
 
 
 def test_a_fit_that_does_not_converge_says_so(obs, tmp_path, capsys):
-    start = load_scene(_spec(mu=5.0))
-    result = fit(start.model, start.params, obs, ["mu"], stages=None, max_steps=1)
-    assert not result.converged
-    assert "did not converge" in result.message and "best parameters so far" in result.message
-    assert result.loss[-1] <= result.loss[0]
-    # the command line: exit code 1, a warning, fit.json with converged = false and the best values
+    """The command line: exit code 1, a warning, fit.json with converged = false and the best values."""
     scene_file = tmp_path / "start.json"
     scene_file.write_text(json.dumps(_spec(mu=5.0)))
     obs_file = save_observation(tmp_path / "obs.npz", obs)
@@ -108,7 +98,8 @@ def test_a_fit_that_does_not_converge_says_so(obs, tmp_path, capsys):
     assert code == 1
     payload = json.loads(out.read_text())
     assert payload["converged"] is False and "did not converge" in payload["message"]
-    assert payload["params"]["mu"] == pytest.approx(float(result.values["mu"]), rel=1e-6)
+    assert "best parameters so far" in payload["message"]
+    assert payload["loss"][-1] <= payload["loss"][0] and payload["iterations"] == 1
     captured = capsys.readouterr()
     assert "did not converge" in captured.err and "NOT CONVERGED" in captured.out
 

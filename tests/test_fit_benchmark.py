@@ -1,0 +1,59 @@
+"""The system-identification benchmark harness (``jaxmpm bench sysid``): its tables, and a
+CI-sized run (marked slow: one coarse 3D identification with a mesh collider)."""
+
+import json
+
+import pytest
+
+from jaxmpm.bench_sysid import Case, errors, preset_cases, run_sysid_bench, scene_spec, summarise, targets, truth_values
+from jaxmpm.scene import load_scene
+
+
+def test_presets_cover_the_protocol():
+    preset, cases = preset_cases("reduced")
+    keys = {c.key for c in cases}
+    assert len(keys) == len(cases)
+    assert {c.material for c in cases} == {"newtonian", "viscoplastic", "sand", "elastic", "plasticine"}
+    assert {c.collider for c in cases} >= {"box", "bunny", "armadillo", "side", "small", "large", "bowl", "three"}
+    assert {c.mode for c in cases} == {"cpic", "grid", "particles"}
+    assert {c.supervision for c in cases} == {"tracks", "silhouettes"}
+    assert preset.frames == 16 and preset.views == 11
+    _, full = preset_cases("full")
+    assert len(full) > len(cases)
+
+
+@pytest.mark.parametrize("collider", ["box", "bunny", "armadillo", "side", "small", "large", "bowl", "three"])
+def test_case_scenes_load_with_the_body_above_the_colliders(collider):
+    preset, _ = preset_cases("ci")
+    case = Case("newtonian", collider, 0, "tracks", "cpic")
+    scene = load_scene(scene_spec(case, preset, truth_values("newtonian", 0)))
+    assert scene.model.collision == "cpic"
+    assert len(scene.model.colliders) == {"three": 4}.get(collider, 2)
+
+
+def test_truth_sets_are_deterministic_and_in_range():
+    a, b = truth_values("viscoplastic", 3), truth_values("viscoplastic", 3)
+    assert a == b and 1e3 <= a["mu"] <= 5e3
+    assert truth_values("sand", 0) != truth_values("sand", 1)
+    e = errors(["mu", "friction_angle"], {"mu": 110.0, "friction_angle": 30.5}, {"mu": 100.0, "friction_angle": 30.0})
+    assert e["mu"] == pytest.approx(0.0414, abs=1e-4) and e["friction_angle"] == pytest.approx(0.5)
+
+
+def test_summary_table_and_targets():
+    row = {"case": {"material": "sand", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"},
+           "key": "k", "errors": {"friction_angle": 0.2}, "velocity_error": 0.001, "converged": True,
+           "seconds": 100.0, "cpu_seconds": 180.0, "peak_rss_mb": 900.0}
+    table = summarise([row, dict(row, errors={"friction_angle": 0.4}, converged=False),
+                       {"case": row["case"], "key": "bad", "error": "boom"}])
+    assert "| tracks | cpic | sand | box | 2 | 1/2 |" in table and "0.30 ± 0.10" in table and "boom" in table
+    assert "1/2 cases within 0.3" in targets([row, dict(row, errors={"friction_angle": 0.4})])
+
+
+@pytest.mark.slow
+def test_ci_preset_runs_end_to_end(tmp_path):
+    code = run_sysid_bench(["--preset", "ci", "--out", str(tmp_path)])
+    assert code == 0
+    rows = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
+    assert len(rows) == 1 and "error" not in rows[0], rows
+    assert rows[0]["errors"]["mu"] < 0.02 and rows[0]["converged"]
+    assert (tmp_path / "table.md").read_text().count("| tracks | cpic | newtonian | box |") == 1
