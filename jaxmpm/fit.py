@@ -454,7 +454,7 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     Every evaluation computes the residuals and the full Jacobian in one forward-mode pass
     (one compiled function per stage); the Jacobian at the accepted point is kept for the
     covariance. Converged when an accepted step changes no parameter by more than
-    ``rtol (1 + |y|)`` (optimisation units: decades, degrees, m/s), or the loss by no more
+    ``rtol (1 + |y|)`` (optimisation units: decades, degrees, m/s) and the loss by no more
     than ``atol + rtol f``, or the loss has fallen by ten orders of magnitude; or, at the
     loss's numerical floor, after ``MAX_REJECTED_STEPS`` consecutive rejected steps.
     """
@@ -495,7 +495,8 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
             nu, rejected, unhealthy = 2.0, 0, False
             if progress is not None:
                 progress(offset + iterations, f)
-            if small_step or small_change or f <= 1e-10 * losses[0]:
+            # Cauchy criterion (as optimistix): the step AND the loss change are both small
+            if (small_step and small_change) or f <= 1e-10 * losses[0]:
                 converged = True
                 break
         else:
