@@ -23,6 +23,34 @@ CONTACTS = ("sticky", "slip", "friction")
 _EPS = 1e-12
 
 
+def row_dot(a, b, keepdims: bool = False):
+    """``sum(a * b, axis=-1)`` written as explicit adds over the (small) last axis.
+
+    XLA's CPU backend emits slow loops for reductions over a last axis of size 2 or 3; the
+    unrolled form fuses with its producers (4x faster in the CPIC gather).
+    """
+    out = a[..., 0] * b[..., 0]
+    for d in range(1, a.shape[-1]):
+        out = out + a[..., d] * b[..., d]
+    return out[..., None] if keepdims else out
+
+
+def row_matvec(m, v):
+    """``einsum("...ij,...j->...i", m, v)`` for small matrices, unrolled (see :func:`row_dot`)."""
+    out = m[..., :, 0] * v[..., None, 0]
+    for d in range(1, v.shape[-1]):
+        out = out + m[..., :, d] * v[..., None, d]
+    return out
+
+
+def rows_times(x, r):
+    """``x @ r`` for rows ``x (..., D)`` and a small constant ``r (D, D)``, unrolled."""
+    out = x[..., 0:1] * r[0]
+    for d in range(1, x.shape[-1]):
+        out = out + x[..., d : d + 1] * r[d]
+    return out
+
+
 def project_velocity(
     v: Float[Array, "... D"],
     normal: Float[Array, "... D"],
@@ -52,13 +80,13 @@ def project_velocity(
     if contact not in CONTACTS:
         raise ValueError(f"unknown contact {contact!r}; expected one of {CONTACTS}")
     rel = v - v_collider
-    vn = jnp.sum(rel * normal, axis=-1, keepdims=True)
+    vn = row_dot(rel, normal, keepdims=True)
     if contact == "sticky":
         return jnp.zeros_like(rel) + v_collider
     approaching = vn < 0
     tangential = rel - vn * normal
     if contact == "friction":
-        vt_norm = jnp.sqrt(jnp.sum(tangential * tangential, axis=-1, keepdims=True) + _EPS)
+        vt_norm = jnp.sqrt(row_dot(tangential, tangential, keepdims=True) + _EPS)
         scale = jnp.maximum(vt_norm + friction * vn, 0.0) / vt_norm
         tangential = tangential * scale
     projected = tangential - restitution * vn * normal

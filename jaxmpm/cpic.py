@@ -24,6 +24,8 @@ Conventions:
 from __future__ import annotations
 
 
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -40,6 +42,9 @@ from .colliders import (
     closest_on_simplices,
     project_velocity,
     rigid_transform,
+    row_dot,
+    row_matvec,
+    rows_times,
 )
 from .errors import SceneError
 from .state import Grid, Stencil, grid_strides, offset_terms, stencil_offsets
@@ -55,6 +60,11 @@ class CollisionField(eqx.Module):
         side: ``(G,)`` int8 in {-1, 0, +1}.
         distance: ``(G,)`` unsigned distance, metres (``band_width`` where not affine).
         normal: ``(G, D)`` unit ``+``-side normal (zero where not affine).
+        rows: ``(G, 1 + D)`` packed ``[side * distance, normal]`` (zero where not affine).
+        stencil_bits: ``(G, 2)`` int32: for the quadratic stencil whose lowest node is this
+            node, bit ``o`` (offset ``o`` in :func:`~jaxmpm.state.stencil_offsets` order) of
+            column 0 / 1 is set when that stencil node is affine on the ``+`` / ``-`` side —
+            one gather gives a particle the sides of all its 3^D stencil nodes.
         shape: the grid's node shape (static).
         band_width: the band half-width in metres, ``band * dx`` (static).
         name: the collider's name (static).
@@ -64,6 +74,8 @@ class CollisionField(eqx.Module):
     side: Int8[Array, " G"]
     distance: Float[Array, " G"]
     normal: Float[Array, "G D"]
+    stencil_bits: Int[Array, "G 2"]
+    rows: Float[Array, "G D1"]
     shape: tuple[int, ...] = eqx.field(static=True)
     band_width: float = eqx.field(static=True)
     name: str = eqx.field(static=True)
@@ -77,6 +89,8 @@ class CollisionField(eqx.Module):
             self.side,
             self.distance.astype(dtype),
             self.normal.astype(dtype),
+            self.stencil_bits,
+            self.rows.astype(dtype),
             self.shape,
             self.band_width,
             self.name,
@@ -88,16 +102,6 @@ class CollisionField(eqx.Module):
         """Whether the field's nodes are exactly the nodes of ``grid`` (static check)."""
         return self.shape == tuple(grid.shape) and self.origin == tuple(grid.origin) and self.dx == grid.dx
 
-    def table(self) -> Float[Array, "G D2"]:
-        """Per-node packed rows ``[A·T, D, N_1..N_D]`` (``A·T`` in {-1, 0, +1} as a float).
-
-        One gather of this table per stencil offset gives everything the particle-wise
-        transfer needs: affinity ``|A·T|``, side, unsigned distance and ``+`` normal.
-        """
-        dtype = self.distance.dtype
-        s = self.side.astype(dtype) * self.affinity.astype(dtype)
-        return jnp.concatenate([s[:, None], self.distance[:, None], self.normal], axis=-1)
-
     @property
     def num_affine(self) -> int:
         return int(np.count_nonzero(np.asarray(self.affinity)))
@@ -106,7 +110,8 @@ class CollisionField(eqx.Module):
         """Per-node ``side * distance`` (``+band_width`` where not affine) and the normal.
 
         A grid-level (GOP-style) boundary condition can use this on static colliders instead
-        of evaluating ``collider.signed_distance`` on every node.
+        of evaluating ``collider.signed_distance`` on every node (see
+        :func:`node_signed_distance`, which also handles open surfaces and moving colliders).
         """
         sd = jnp.where(self.affinity, self.side.astype(self.distance.dtype) * self.distance, self.band_width)
         return sd, self.normal
@@ -170,12 +175,31 @@ def build_collision_field(
         side=jnp.asarray(side.astype(np.int8)),
         distance=jnp.asarray(dist, dtype),
         normal=jnp.asarray(nrm, dtype),
+        stencil_bits=jnp.asarray(stencil_side_bits(side.astype(np.int8).reshape(grid.shape))),
+        rows=jnp.asarray(np.concatenate([np.where(aff, side * dist, 0.0)[:, None], np.where(aff[:, None], nrm, 0.0)], -1), dtype),
         shape=tuple(grid.shape),
         band_width=width,
         name=collider.name,
         origin=tuple(grid.origin),
         dx=grid.dx,
     )
+
+
+def stencil_side_bits(side: np.ndarray) -> np.ndarray:
+    """Per node j, the ``+``/``-`` side bits of the stencil nodes ``j + o`` (NumPy, ``(G, 2)`` int32).
+
+    ``side`` is the dense ``(n_1, ..., n_D)`` side array (0 = not affine); nodes past the
+    grid count as not affine.
+    """
+    dim = side.ndim
+    padded = np.pad(side, [(0, 2)] * dim)
+    plus = np.zeros(side.shape, np.int64)
+    minus = np.zeros(side.shape, np.int64)
+    for o, offset in enumerate(stencil_offsets(dim)):
+        view = padded[tuple(slice(k, k + n) for k, n in zip(offset, side.shape))]
+        plus |= (view > 0).astype(np.int64) << o
+        minus |= (view < 0).astype(np.int64) << o
+    return np.stack([plus.reshape(-1), minus.reshape(-1)], axis=-1).astype(np.int32)
 
 
 def field_to_dense(field: CollisionField, grid: Grid | None = None) -> dict[str, np.ndarray]:
@@ -439,6 +463,21 @@ def collider_lattice(collider: RigidCollider, dx: float, band: float = 2.0) -> G
     return Grid(lo=tuple((b[0] - margin).tolist()), hi=tuple((b[1] + margin).tolist()), dx=dx)
 
 
+def check_planes(colliders, grid: Grid) -> None:
+    """Raise if a plane's solid side contains the whole domain at t = 0 (every particle
+    would start inside it; usually a flipped normal)."""
+    for col in colliders:
+        if not isinstance(col, Plane):
+            continue
+        corners = np.stack(np.meshgrid(*zip(grid.lo, grid.hi), indexing="ij"), -1).reshape(-1, grid.dim)
+        h = (corners - np.asarray(col.point)) @ np.asarray(col.normal)
+        if np.all(h < 0):
+            raise SceneError(
+                f"collider {col.name!r}: the whole domain [{list(grid.lo)}, {list(grid.hi)}] lies on the solid "
+                f"side of the plane (point {list(col.point)}, normal {list(col.normal)}); is the normal flipped?"
+            )
+
+
 def build_fields(colliders, grid: Grid, dtype=None, band: float = 2.0) -> tuple[CollisionField | None, ...]:
     """The collision field of every collider (``None`` for planes, which stay analytic).
 
@@ -542,9 +581,9 @@ def build_boundary(colliders, grid: Grid, dtype=None, spacing: float = 0.5) -> t
 
 
 def _safe_normalize(v):
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    n2 = row_dot(v, v)
     ok = n2 > 1e-24
-    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
+    return v * jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, n2, 1.0)), 0.0)[:, None]
 
 
 def _lattice_lookup(field: CollisionField, table, X):
@@ -560,7 +599,7 @@ def _lattice_lookup(field: CollisionField, table, X):
     valid = jnp.all((jf >= 0) & (jf <= upper), axis=-1)
     ji = jnp.clip(jf, 0, upper).astype(jnp.int32)
     flat = sum(ji[:, d] * s for d, s in enumerate(grid_strides(shape)))
-    row = jnp.where(valid[:, None], table[flat], 0.0)
+    row = jnp.where(valid[:, None], table[flat], 0.0)  # rows [T·D, N]
     return row, origin + ji.astype(dtype) * field.dx
 
 
@@ -577,10 +616,9 @@ class Contact(eqx.Module):
         normal: unit normal pointing to the particle's own side, ``(N, D)`` per collider.
         incompatible: bit ``o`` set where stencil node ``o`` lies on the other side, ``(N,)``
             int32 per collider.
-        any_incompatible: OR of the above, ``(N,)`` int32.
-        weight: total stencil weight ``W = sum w_i`` of the incompatible nodes, ``(N,)`` per
-            collider.
-        moment: their first moment ``sum w_i (x_i - x_p)``, metres, ``(N, D)`` per collider.
+        owned: the incompatible bits attributed to collider ``c`` (those not already
+            incompatible with an earlier collider), ``(N,)`` int32 per collider.
+        any_incompatible: OR of ``incompatible``, ``(N,)`` int32.
         v_collider: collider surface velocity at the particle, ``(N, D)`` per collider.
     """
 
@@ -589,15 +627,94 @@ class Contact(eqx.Module):
     phi: tuple[Float[Array, " N"], ...]
     normal: tuple[Float[Array, "N D"], ...]
     incompatible: tuple[Int[Array, " N"], ...]
+    owned: tuple[Int[Array, " N"], ...]
     any_incompatible: Int[Array, " N"]
-    weight: tuple[Float[Array, " N"], ...]
-    moment: tuple[Float[Array, "N D"], ...]
     v_collider: tuple[Float[Array, "N D"], ...]
 
-    def incompatible_at(self, o: int, c: int | None = None) -> Bool[Array, " N"]:
-        """Whether stencil node ``o`` is incompatible (with collider ``c``, or with any)."""
-        bits = self.any_incompatible if c is None else self.incompatible[c]
-        return jnp.bitwise_and(jnp.right_shift(bits, o), 1) > 0
+    def incompatible_at(self, o: int) -> Bool[Array, " N"]:
+        """Whether stencil node ``o`` is incompatible with the particle (for any collider)."""
+        return _bit(self.any_incompatible, o)
+
+    def owned_at(self, o: int, c: int) -> Bool[Array, " N"]:
+        """Whether stencil node ``o`` is an incompatible node attributed to collider ``c``."""
+        return _bit(self.owned[c], o)
+
+
+def _bit(bits, o: int):
+    return jnp.bitwise_and(jnp.right_shift(bits, o), 1) > 0
+
+
+def _corner_lookup(grid: Grid, table, x):
+    """Signed distance and normal at ``x`` from the ``2^D`` corners of its cell.
+
+    Each affine corner's value is carried to the particle along its normal,
+    ``T_c D_c + N_c·(x - x_c)`` (exact for a planar surface), and averaged with the
+    multilinear weights of the affine corners; the normal is the normalised weighted sum.
+
+    Returns:
+        ``phi (N,)`` (``+band`` where no corner is affine), ``normal (N, D)`` (``+`` side).
+    """
+    dtype = x.dtype
+    n, dim = x.shape
+    xi = (x - jnp.asarray(grid.origin, dtype)) / grid.dx
+    cell = jnp.clip(jnp.floor(xi), 0, jnp.asarray(grid.shape, dtype) - 2)
+    f = xi - cell
+    base = cell.astype(jnp.int32)
+    strides = grid_strides(grid.shape)
+    sw = jnp.zeros((n,), dtype)
+    sphi = jnp.zeros((n,), dtype)
+    snrm = jnp.zeros((n, dim), dtype)
+    for corner in _corners(dim):
+        idx = sum((base[:, d] + k) * st for d, (k, st) in enumerate(zip(corner, strides)))
+        w = jnp.prod(jnp.stack([f[:, d] if k else 1.0 - f[:, d] for d, k in enumerate(corner)], -1), -1)
+        row = table[idx]
+        sd, nrm = row[:, 0], row[:, 1:]
+        wa = jnp.where(row_dot(nrm, nrm) > 0.5, w, 0.0)
+        to_particle = sd - grid.dx * sum(nrm[:, d] * (k - f[:, d]) for d, k in enumerate(corner))
+        sw = sw + wa
+        sphi = sphi + wa * to_particle
+        snrm = snrm + wa[:, None] * nrm
+    sw, sphi, snrm = materialize((sw, sphi, snrm), jnp.isfinite(x[0, 0]))
+    near = sw > 0
+    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * grid.dx), _safe_normalize(snrm)
+
+
+def _corners(dim: int):
+    return tuple(itertools.product((0, 1), repeat=dim))
+
+
+def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, collider, time):
+    """Side bits of the (world) stencil nodes and the particle's signed distance and normal for
+    a moving collider: each stencil node is looked up in the collider's rest frame at
+    ``R(t)^T (x_i - c(t)) + c0`` (nearest lattice node ``j`` plus the first-order correction
+    ``N_j·(X - X_j)``, so sides move continuously with the collider)."""
+    dtype = x.dtype
+    n, dim = x.shape
+    dx = grid.dx
+    c, rot = rigid_transform(collider, time, dtype)
+    pivot = jnp.asarray(collider.pivot, dtype)
+    Xp = pivot + rows_times(x - c, rot)
+    sw = jnp.zeros((n,), dtype)
+    sphi = jnp.zeros((n,), dtype)
+    snrm = jnp.zeros((n, dim), dtype)
+    plus = jnp.zeros((n,), jnp.int32)
+    minus = jnp.zeros((n,), jnp.int32)
+    for o, offset in enumerate(stencil_offsets(dim)):
+        _, weight, dpos = offset_terms(grid, st, offset)
+        Xi = pivot + rows_times(x + dx * dpos - c, rot)  # the world node, in the rest frame
+        row, Xj = _lattice_lookup(field, table, Xi)
+        sd, nrm = row[:, 0], row[:, 1:]
+        node_sd = sd + row_dot(nrm, Xi - Xj)
+        affine = row_dot(nrm, nrm) > 0.5
+        wa = jnp.where(affine, weight, 0.0)
+        sw = sw + wa
+        sphi = sphi + wa * (sd + row_dot(nrm, Xp - Xj))
+        snrm = snrm + wa[:, None] * nrm
+        plus = plus | jnp.left_shift((affine & (node_sd >= 0)).astype(jnp.int32), o)
+        minus = minus | jnp.left_shift((affine & (node_sd < 0)).astype(jnp.int32), o)
+    near = sw > 0
+    phi = jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx)
+    return plus, minus, phi, rows_times(_safe_normalize(snrm), rot.T)
 
 
 def gather_contact(
@@ -609,20 +726,24 @@ def gather_contact(
     colliders,
     fields,
 ) -> Contact | None:
-    """Gather each particle-wise collider's field from the particles' stencil nodes.
+    """Particle-wise collider data of one substep: sides of the stencil nodes, signed
+    distance, normal, persistent tags, compatibility bits.
 
-    For every particle and collider, over the stencil's *affine* nodes ``i`` (weights ``w_i``):
-    the signed distance ``phi = sum w_i (T_i D_i + N_i·(x_p - x_i)) / sum w_i`` (each node's
-    value carried to the particle along its normal: exact for planar surfaces even when only
-    some nodes are affine), the normal ``normalize(sum w_i N_i)``, and each node's side. The
-    **persistent tag** is acquired as ``sign(phi)`` when the particle first comes near (some
-    stencil node affine), kept while it stays near (this is what stops tunnelling: a particle
-    pushed slightly through keeps its side) and cleared when it leaves the band. A node is
-    incompatible with a particle when both are affine to a collider and disagree on its side.
+    * **Sides of the stencil nodes**: for a static collider one gather of the precomputed
+      :attr:`CollisionField.stencil_bits` at the particle's lowest stencil node gives the
+      side of all 3^D stencil nodes (0 = not affine). A particle is *near* a collider when
+      some stencil node is affine.
+    * **Signed distance and normal** of the particle (``+`` side): from the affine corners
+      of its cell, each corner's signed distance carried to the particle along its normal
+      (exact for planar surfaces) and averaged with multilinear weights.
+    * **Persistent tag**: acquired as ``sign(phi)`` when the particle first comes near, kept
+      while it stays near (this is what stops tunnelling: a particle pushed slightly through
+      the surface keeps its side) and cleared when it leaves the band.
+    * **Compatibility**: a stencil node is incompatible when it is affine and on the side
+      opposite to the particle's tag.
 
-    Moving colliders are looked up in their rest frame at ``R(t)^T (x - c(t)) + c0`` on their
-    own lattice (nearest node plus the first-order correction ``N_j·(X - X_j)``, so sides move
-    continuously with the collider); their normals are rotated back to the world.
+    Moving colliders are looked up in their rest frame per stencil node (3^D look-ups,
+    see ``_moving_lookup``), their normals rotated back to the world.
 
     Returns:
         A :class:`Contact`, or ``None`` when no collider is particle-wise.
@@ -631,88 +752,57 @@ def gather_contact(
     if not index:
         return None
     dtype = x.dtype
-    n, dim = x.shape
-    dx = grid.dx
-    offsets = stencil_offsets(dim)
+    n = x.shape[0]
+    base = sum(st.base[:, d] * s for d, s in enumerate(grid_strides(grid.shape)))
     new_tag = jax.lax.stop_gradient(tag)
-    phis, normals, incs, vcs, weights, moments = [], [], [], [], [], []
+    phis, normals, incs, owned, vcs = [], [], [], [], []
     any_inc = jnp.zeros((n,), jnp.int32)
     for k in index:
         col, field = colliders[k], fields[k]
-        table = field.table().astype(dtype)
-        local = bool(getattr(col, "moving", False)) or not field.on_grid(grid)
-        if local:
-            c, rot = rigid_transform(col, time, dtype)
-            pivot = jnp.asarray(col.pivot, dtype)
-            Xp = pivot + (x - c) @ rot
-        sw = jnp.zeros((n,), dtype)
-        sphi = jnp.zeros((n,), dtype)
-        snrm = jnp.zeros((n, dim), dtype)
-        plus = jnp.zeros((n,), jnp.int32)
-        minus = jnp.zeros((n,), jnp.int32)
-        w_plus = jnp.zeros((n,), dtype)
-        w_minus = jnp.zeros((n,), dtype)
-        m_plus = jnp.zeros((n, dim), dtype)
-        m_minus = jnp.zeros((n, dim), dtype)
-        for o, offset in enumerate(offsets):
-            idx, weight, dpos = offset_terms(grid, st, offset)
-            if local:
-                Xi = pivot + (x + dx * dpos - c) @ rot  # the world node, in the rest frame
-                row, Xj = _lattice_lookup(field, table, Xi)
-                s, d, nrm = row[:, 0], row[:, 1], row[:, 2:]
-                node_sd = s * d + jnp.sum(nrm * (Xi - Xj), axis=-1)
-                to_particle = s * d + jnp.sum(nrm * (Xp - Xj), axis=-1)
-                affine = s != 0
-                node_side = jnp.where(affine, jnp.where(node_sd >= 0, 1, -1), 0)
-            else:
-                row = table[idx]
-                s, d, nrm = row[:, 0], row[:, 1], row[:, 2:]
-                to_particle = s * d - dx * jnp.sum(nrm * dpos, axis=-1)
-                affine = s != 0
-                node_side = s
-            wa = jnp.where(affine, weight, 0.0)
-            sw = sw + wa
-            sphi = sphi + wa * to_particle
-            snrm = snrm + wa[:, None] * nrm
-            plus = plus | jnp.left_shift((node_side > 0).astype(jnp.int32), o)
-            minus = minus | jnp.left_shift((node_side < 0).astype(jnp.int32), o)
-            wp = jnp.where(node_side > 0, weight, 0.0)
-            wm = jnp.where(node_side < 0, weight, 0.0)
-            w_plus, w_minus = w_plus + wp, w_minus + wm
-            m_plus = m_plus + (dx * wp)[:, None] * dpos
-            m_minus = m_minus + (dx * wm)[:, None] * dpos
-        near = sw > 0
-        phi = sphi / jnp.where(near, sw, 1.0)
-        nrm = _safe_normalize(snrm)
-        if local:
-            nrm = nrm @ rot.T
+        table = field.rows.astype(dtype)
+        moving = bool(getattr(col, "moving", False))
+        if moving or not field.on_grid(grid):
+            plus, minus, phi, nrm = _moving_lookup(grid, st, x, field, table, col, time)
+        else:
+            bits = field.stencil_bits[base]
+            plus, minus = bits[:, 0], bits[:, 1]
+            phi, nrm = _corner_lookup(grid, table, x)
+        near = (plus | minus) != 0
         old = new_tag[:, k]
         acquired = jnp.where(jax.lax.stop_gradient(phi) >= 0, 1, -1).astype(jnp.int8)
         t = jnp.where(near, jnp.where(old != 0, old, acquired), 0).astype(jnp.int8)
         new_tag = new_tag.at[:, k].set(t)
         tf = t.astype(dtype)
         inc = jnp.where(t > 0, minus, jnp.where(t < 0, plus, 0))
-        weights.append(jnp.where(t > 0, w_minus, jnp.where(t < 0, w_plus, 0.0)))
-        moments.append(jnp.where((t > 0)[:, None], m_minus, jnp.where((t < 0)[:, None], m_plus, 0.0)))
         phis.append(tf * phi)
         normals.append(tf[:, None] * nrm)
         incs.append(inc)
+        owned.append(inc & ~any_inc)
         any_inc = any_inc | inc
-        if getattr(col, "moving", False):
-            vcs.append(col.velocity_at(x, time))
-        else:
-            vcs.append(jnp.zeros_like(x))
-    return Contact(
-        tag=jax.lax.stop_gradient(new_tag),
+        vcs.append(col.velocity_at(x, time) if moving else jnp.zeros_like(x))
+    stop = jax.lax.stop_gradient
+    contact = Contact(
+        tag=stop(new_tag),
         index=index,
         phi=tuple(phis),
         normal=tuple(normals),
-        incompatible=tuple(jax.lax.stop_gradient(i) for i in incs),
-        any_incompatible=jax.lax.stop_gradient(any_inc),
-        weight=tuple(weights),
-        moment=tuple(moments),
+        incompatible=tuple(stop(i) for i in incs),
+        owned=tuple(stop(i) for i in owned),
+        any_incompatible=stop(any_inc),
         v_collider=tuple(vcs),
     )
+    return materialize(contact, jnp.isfinite(time))
+
+
+def materialize(tree, token):
+    """``tree`` itself, computed once and stored (``token`` must be a traced True).
+
+    XLA's CPU fusion treats the gather's arithmetic as cheap and re-computes it inside each
+    of the 27 P2G scatter operands and G2P fusions that read the compatibility bits (5x
+    slower steps); ``lax.optimization_barrier`` is expanded away before fusion on CPU. A
+    conditional is a fusion boundary: its output is materialised once.
+    """
+    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
 
 
 class GhostNodes(eqx.Module):
@@ -722,57 +812,68 @@ class GhostNodes(eqx.Module):
     they been ordinary nodes they would have received only this particle's contribution
     ``w_i (m u + A (x_i - x_p))`` (``u = v_p + dt g``, ``A`` the MLS affine/stress matrix).
     Their mean velocity ``g = u + (A/m) M / W`` (``W = sum w_i``, ``M = sum w_i (x_i - x_p)``
-    over the incompatible nodes) is the particle's velocity relative to the collider
-    including the push of its own stress; it is projected once per particle and collider —
-    Coulomb friction mu_b, restitution ``e`` on the particle's approach speed, relative to
-    the collider's velocity — and node ``i`` reads ``u + C (x_i - x_p) + (proj(g) - u - C M/W)``
-    (the particle's own affine velocity, shifted so that the incompatible nodes together
-    return ``W proj(g)``). The collider's impulse on the particle is therefore
-    ``m W (proj(g) - g)``: it lies in the friction cone of the particle's *whole* normal
-    reaction, stress included, so a body sliding on a collider obeys
-    ``a = g (sin θ - mu cos θ)`` and stops when ``tan θ < mu``.
+    over the incompatible nodes of collider ``c``) is the particle's velocity against the
+    collider *including the push of its own stress*; it is projected once per particle and
+    collider — Coulomb friction mu_b, restitution ``e`` on the particle's own approach speed,
+    relative to the collider's velocity — and every incompatible node of ``c`` reads the
+    projected velocity ``P = proj(g)`` (as TM's CPIC reads a fake velocity built from the
+    particle's own). The collider's impulse on the particle is ``m W (P - g)``: it lies in the
+    friction cone of the particle's whole normal reaction, stress included, so a body sliding
+    on a collider obeys ``a = g (sin θ - mu cos θ)`` and stops when ``tan θ < mu``.
 
     Attributes:
         contact: the substep's :class:`Contact`.
         u: ``v_p + dt g``, ``(N, D)``.
-        C: the particle's APIC matrix ``C_p``, ``(N, D, D)``.
         B: ``A_p / m_p`` (APIC + stress), ``(N, D, D)``.
+        weight, moment: per collider, ``W`` and ``M / dx`` (cells) of its incompatible nodes
+            (:func:`incompatible_moments`).
         friction, restitution: per particle-wise collider, scalars (differentiable).
         kinds: per particle-wise collider, its ``contact`` (static).
     """
 
     contact: Contact
     u: Float[Array, "N D"]
-    C: Float[Array, "N D D"]
     B: Float[Array, "N D D"]
+    weight: tuple[Float[Array, " N"], ...]
+    moment: tuple[Float[Array, "N D"], ...]
     friction: tuple[Float[Array, ""], ...]
     restitution: tuple[Float[Array, ""], ...]
     kinds: tuple[str, ...] = eqx.field(static=True)
 
-    def shifts(self) -> list[Float[Array, "N D"]]:
-        """Per collider, the shift ``proj(g) - u - C M / W`` added to its incompatible nodes."""
-        out = []
-        for c, kind in enumerate(self.kinds):
-            ct = self.contact
-            W = ct.weight[c]
-            has = W > 0
-            mean = ct.moment[c] / jnp.where(has, W, 1.0)[:, None]
-            own = self.u + jnp.einsum("nij,nj->ni", self.C, mean)
-            g = self.u + jnp.einsum("nij,nj->ni", self.B, mean)
-            n, vc = ct.normal[c], ct.v_collider[c]
-            projected = project_velocity(g, n, kind, friction=self.friction[c], restitution=0.0, v_collider=vc)
-            if kind != "sticky":
-                approach = jnp.sum((self.u - vc) * n, axis=-1, keepdims=True)
-                projected = projected + self.restitution[c] * jnp.maximum(-approach, 0.0) * n
-            out.append(jnp.where(has[:, None], projected - own, 0.0))
+    def projected(self, c: int, dx: float) -> Float[Array, "N D"]:
+        """``P = proj(u + B M / W)`` for collider ``c``."""
+        ct = self.contact
+        weight = self.weight[c]
+        mean = (dx * self.moment[c]) / jnp.where(weight > 0, weight, 1.0)[:, None]
+        g = self.u + row_matvec(self.B, mean)
+        n, vc = ct.normal[c], ct.v_collider[c]
+        kind = self.kinds[c]
+        out = project_velocity(g, n, kind, friction=self.friction[c], restitution=0.0, v_collider=vc)
+        if kind != "sticky":
+            approach = row_dot(self.u - vc, n, keepdims=True)
+            out = out + self.restitution[c] * jnp.maximum(-approach, 0.0) * n
         return out
 
-    def node_velocity(self, o: int, dpos_dx: Float[Array, "N D"], grid_v: Float[Array, "N D"], shifts):
-        """The velocity particle p reads from its stencil node ``o`` (``dpos_dx = x_i - x_p``)."""
-        ghost = self.u + jnp.einsum("nij,nj->ni", self.C, dpos_dx)
-        for c, shift in enumerate(shifts):
-            ghost = ghost + jnp.where(self.contact.incompatible_at(o, c)[:, None], shift, 0.0)
-        return jnp.where(self.contact.incompatible_at(o)[:, None], ghost, grid_v)
+
+def incompatible_moments(st: Stencil, contact: Contact):
+    """Per collider, the total stencil weight ``W`` of its incompatible nodes and their first
+    moment ``sum w_i (x_i - x_p) / dx`` (cells), from the bits and the stencil weights only
+    (no gathers, so the 3^D terms fuse into one pass)."""
+    weights, moments = [], []
+    dim = st.dim
+    for c in range(len(contact.index)):
+        w_sum = jnp.zeros_like(st.fx[0])
+        m_sum = [jnp.zeros_like(st.fx[0]) for _ in range(dim)]
+        for o, offset in enumerate(stencil_offsets(dim)):
+            w = st.w[offset[0]][0]
+            for d in range(1, dim):
+                w = w * st.w[offset[d]][d]
+            w = jnp.where(contact.owned_at(o, c), w, 0.0)
+            w_sum = w_sum + w
+            m_sum = [m + w * (k - f) for m, k, f in zip(m_sum, offset, st.fx)]
+        weights.append(w_sum)
+        moments.append(jnp.stack(m_sum, axis=-1))
+    return materialize((tuple(weights), tuple(moments)), jnp.isfinite(st.fx[0][0]))
 
 
 def _smooth_relu(z, width):
@@ -795,7 +896,7 @@ def penetration_correction(
     disp = jnp.zeros_like(v)
     for c in range(len(contact.index)):
         n = contact.normal[c]
-        predicted = contact.phi[c] + dt * jnp.sum((v - contact.v_collider[c]) * n, axis=-1)
+        predicted = contact.phi[c] + dt * row_dot(v - contact.v_collider[c], n)
         depth = _smooth_relu(-predicted, 0.05 * dx)
         disp = disp + (strength * depth)[:, None] * n
     return disp
@@ -823,20 +924,22 @@ def node_signed_distance(
     nodes lying on them. Nodes outside the band: ``+band``.
     """
     dtype = nodes.dtype
-    table = field.table().astype(dtype)
+    table = field.rows.astype(dtype)
     closed = closed_surface(collider)
     if not getattr(collider, "moving", False) and field.on_grid(grid):
-        s, d, nrm = table[:, 0], table[:, 1], table[:, 2:]
-        sd = s * d if closed else d
-        return jnp.where(s != 0, sd, field.band_width), nrm
-    c, rot = rigid_transform(collider, time, dtype)
-    pivot = jnp.asarray(collider.pivot, dtype)
-    X = pivot + (nodes - c) @ rot
-    row, Xj = _lattice_lookup(field, table, X)
-    s, d, nrm = row[:, 0], row[:, 1], row[:, 2:]
-    sd = s * d + jnp.sum(nrm * (X - Xj), axis=-1)
+        sd, nrm = table[:, 0], table[:, 1:]
+        affine = field.affinity
+    else:
+        c, rot = rigid_transform(collider, time, dtype)
+        pivot = jnp.asarray(collider.pivot, dtype)
+        X = pivot + rows_times(nodes - c, rot)
+        row, Xj = _lattice_lookup(field, table, X)
+        nrm = row[:, 1:]
+        sd = row[:, 0] + row_dot(nrm, X - Xj)
+        affine = row_dot(nrm, nrm) > 0.5
+        nrm = rows_times(nrm, rot.T)
     sd = sd if closed else jnp.abs(sd)
-    return jnp.where(s != 0, sd, field.band_width), nrm @ rot.T
+    return jnp.where(affine, sd, field.band_width), nrm
 
 
 def boundary_positions(boundary: BoundaryParticles, collider: Collider, time):
@@ -845,5 +948,5 @@ def boundary_positions(boundary: BoundaryParticles, collider: Collider, time):
     if not getattr(collider, "moving", False):
         return X, jnp.zeros_like(X)
     c, rot = rigid_transform(collider, time, X.dtype)
-    x = c + (X - jnp.asarray(collider.pivot, X.dtype)) @ rot.T
+    x = c + rows_times(X - jnp.asarray(collider.pivot, X.dtype), rot.T)
     return x, collider.velocity_at(x, time)

@@ -93,7 +93,9 @@ class Model(eqx.Module):
     def __post_init__(self):
         if self.collision not in COLLISION_MODES:
             raise ValueError(f"collision must be one of {COLLISION_MODES}, got {self.collision!r}")
-        from .cpic import build_boundary, build_fields, is_particle_wise
+        from .cpic import build_boundary, build_fields, check_planes, is_particle_wise
+
+        check_planes(self.colliders, self.grid)
 
         dtype = self.bodies[0].x0.dtype if self.bodies else None
         k = len(self.colliders)

@@ -120,13 +120,19 @@ def p2g(
     affine = affine_momentum(grid, state, tau, dt)
     mv = state.mass[:, None] * state.v
     packed = jnp.zeros((grid.num_nodes, 1 + dim), state.x.dtype)
+    # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
+    columns = [grid.dx * affine[:, :, d] for d in range(dim)]
+    base_momentum = mv - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
     for o, offset in enumerate(stencil_offsets(dim)):
-        index, weight, dpos = offset_terms(grid, st, offset)
+        index, weight, _ = offset_terms(grid, st, offset, with_dpos=False)
         if contact is not None:
             weight = jnp.where(contact.incompatible_at(o), 0.0, weight)
-        momentum = mv + jnp.einsum("nij,nj->ni", affine, dpos * grid.dx)
+        momentum = base_momentum
+        for d, od in enumerate(offset):
+            if od:
+                momentum = momentum + od * columns[d]
         values = weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1)
-        packed = packed.at[index].add(values)
+        packed = packed.at[index].add(values, mode="drop")
     return packed[:, 0], packed[:, 1:]
 
 
@@ -162,7 +168,7 @@ def p2g_boundary(
         for offset in stencil_offsets(grid.dim):
             index, weight, _ = offset_terms(grid, st, offset)
             values = (weight * mass)[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
-            packed = packed.at[index].add(values)
+            packed = packed.at[index].add(values, mode="drop")
     return packed[:, 0], packed[:, 1:]
 
 
@@ -254,25 +260,32 @@ def g2p(
 ) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]]:
     """Gather particle velocities and affine matrices ``C = 4/dx^2 sum w v_i (x_i - x_p)^T``.
 
-    With CPIC ``ghost`` nodes, a particle reads its incompatible nodes' velocity from its own
-    Coulomb-projected velocity instead of the grid (:class:`jaxmpm.cpic.GhostNodes`).
+    With CPIC ``ghost`` nodes, the nodes incompatible with collider ``c`` read the particle's
+    own projected velocity ``P_c`` (:class:`jaxmpm.cpic.GhostNodes`) instead of the grid: the
+    loop skips them and their share is added at the end from their total weight ``W_c`` and
+    moment ``M_c`` (:func:`jaxmpm.cpic.incompatible_moments`): ``v += W_c P_c``,
+    ``C += 4/dx^2 P_c M_c^T``.
     """
-    n, dim = st.fx.shape
-    v = jnp.zeros((n, dim), grid_v.dtype)
-    C = jnp.zeros((n, dim, dim), grid_v.dtype)
-    shifts = None if ghost is None else ghost.shifts()
+    n, dim = st.num_particles, st.dim
+    dtype = grid_v.dtype
+    v = jnp.zeros((n, dim), dtype)
+    C = jnp.zeros((n, dim, dim), dtype)
     for o, offset in enumerate(stencil_offsets(dim)):
         index, weight, dpos = offset_terms(grid, st, offset)
         vi = grid_v[index]
         if ghost is not None:
-            vi = ghost.node_velocity(o, grid.dx * dpos, vi, shifts)
+            weight = jnp.where(ghost.contact.incompatible_at(o), 0.0, weight)
         v = v + weight[:, None] * vi
         C = C + (4.0 / grid.dx) * weight[:, None, None] * vi[:, :, None] * dpos[:, None, :]
+    for c in range(0 if ghost is None else len(ghost.kinds)):
+        P = ghost.projected(c, grid.dx)
+        v = v + ghost.weight[c][:, None] * P
+        C = C + (4.0 / grid.dx) * P[:, :, None] * ghost.moment[c][:, None, :]
     return v, C
 
 
 def ghost_nodes(
-    model: Model, params: Params, state: State, tau: Float[Array, "N D D"], contact: cpic.Contact | None
+    model: Model, params: Params, state: State, st: Stencil, tau: Float[Array, "N D D"], contact: cpic.Contact | None
 ) -> cpic.GhostNodes | None:
     """The CPIC ghost-node data of this substep (``None`` without particle-wise colliders)."""
     if contact is None:
@@ -281,11 +294,13 @@ def ghost_nodes(
     affine = affine_momentum(model.grid, state, tau, dt)
     u = state.v + dt * jnp.asarray(params["gravity"], state.v.dtype)
     cps = [params["colliders"][k] for k in contact.index]
+    weight, moment = cpic.incompatible_moments(st, contact)
     return cpic.GhostNodes(
         contact=contact,
         u=u,
-        C=state.C,
         B=affine / state.mass[:, None, None],
+        weight=weight,
+        moment=moment,
         friction=tuple(jnp.asarray(cp["friction"], u.dtype) for cp in cps),
         restitution=tuple(jnp.asarray(cp["restitution"], u.dtype) for cp in cps),
         kinds=tuple(model.colliders[k].contact for k in contact.index),
@@ -323,7 +338,7 @@ def step(model: Model, params: Params, state: State) -> State:
     mass, momentum = p2g(grid, st, state, tau, dt, contact)
     rigid = p2g_boundary(model, state, state.time)
     grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
-    v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, tau, contact))
+    v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, st, tau, contact))
     C = _ext.affine(model, params, C)  # extensions: damping
     x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
     tag = state.tag if contact is None else contact.tag

@@ -1,0 +1,83 @@
+"""3D (coarse): nothing leaks into closed meshes, and an open bowl holds what is poured into it."""
+
+import numpy as np
+import pytest
+from collider_scenes import ELASTIC, FLUID, SAND, depth_inside, rollout
+
+from jaxmpm.scene import load_scene
+
+
+def _side_by_side(dx, collision="cpic"):
+    """A box, the bunny and the armadillo side by side on a sticky floor; three bars of fluid,
+    sand and elastic material (one behind the other) fall across all three."""
+    z = (0.17, 0.29, 0.41)
+    bodies = [
+        {"shape": "box", "lo": [0.1, 0.55, zk - 0.04], "hi": [1.7, 0.63, zk + 0.04], "velocity": [0.0, -2.0, 0.0],
+         "material": m, "name": name}
+        for zk, m, name in zip(z, (FLUID, SAND, ELASTIC), ("fluid", "sand", "elastic"))
+    ]
+    placed = {"scale": 0.42, "contact": "slip"}
+    return {
+        "dim": 3, "dx": dx, "domain": {"lo": [0.0, 0.0, 0.0], "hi": [1.8, 0.8, 0.6]}, "frames": 8,
+        "frame_dt": 1 / 24, "substeps": int(round(2.0 / dx)), "gravity": [0.0, -9.8, 0.0],
+        "collision": collision, "bodies": bodies,
+        "colliders": [
+            {"type": "plane", "name": "floor", "point": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0]},
+            {"type": "box", "name": "box", "lo": [0.15, 0.0, 0.12], "hi": [0.45, 0.3, 0.48], "rotate": [0.0, 20.0, 0.0],
+             "contact": "slip"},
+            {"type": "mesh", "name": "bunny", "path": "bunny.obj", "translate": [0.9, 0.21, 0.3], **placed},
+            {"type": "mesh", "name": "armadillo", "path": "armadillo.obj", "translate": [1.5, 0.21, 0.3], **placed},
+        ],
+    }
+
+
+@pytest.mark.parametrize("dx", [0.05, 0.04])
+def test_fluid_sand_and_elastic_never_enter_box_bunny_or_armadillo(dx):
+    scene = load_scene(_side_by_side(dx))
+    n = scene.model.num_particles
+    assert 500 < n < 4000
+    times, x, _ = rollout(scene.model, scene.params)
+    for collider in scene.model.colliders[1:]:
+        depth = depth_inside(collider, times, x)
+        # every material touched this collider ...
+        for sl in scene.model.body_slices():
+            assert depth[:, sl].max() > -dx, (collider.name, sl)
+        # ... and no particle ever got deeper than dx/2 inside it
+        assert depth.max() < 0.5 * dx, (collider.name, depth.max() / dx)
+
+
+def _bowl_spec(dx=0.05):
+    return {
+        "dim": 3, "dx": dx, "domain": {"lo": [0.0, 0.0, 0.0], "hi": [1.2, 0.9, 0.8]}, "frames": 14,
+        "frame_dt": 1 / 24, "substeps": int(round(2.0 / dx)), "gravity": [0.0, -9.8, 0.0],
+        "bodies": [
+            {"shape": "sphere", "center": [0.4, 0.5, 0.4], "radius": 0.1,
+             "material": {**FLUID, "mu": 20.0}, "name": "poured"},
+            {"shape": "box", "lo": [0.8, 0.55, 0.3], "hi": [0.95, 0.7, 0.5], "velocity": [0.0, -1.0, 0.0],
+             "material": SAND, "name": "outside"},
+        ],
+        "colliders": [
+            {"type": "plane", "name": "floor", "point": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0]},
+            # the shipped bowl: open hemisphere, rim radius 0.5 * scale, normals into the bowl
+            {"type": "mesh", "name": "bowl", "path": "bowl.obj", "scale": 0.6, "translate": [0.4, 0.25, 0.4],
+             "contact": "slip"},
+        ],
+    }
+
+
+def test_open_bowl_holds_what_is_poured_in_and_outside_material_falls_past():
+    scene = load_scene(_bowl_spec())
+    bowl = scene.model.colliders[1]
+    assert not bowl.closed
+    times, x, _ = rollout(scene.model, scene.params)
+    dx = scene.model.grid.dx
+    centre, radius, rim = np.array([0.4, 0.4, 0.4]), 0.3, 0.4  # sphere centre, radius, rim height
+    inside, outside = scene.model.body_slices()
+    r = np.linalg.norm(x[:, inside] - centre, axis=-1)
+    assert x[-1, inside, 1].max() < rim  # it stays in the bowl (below the rim) ...
+    assert x[:, inside, 1].min() < 0.1 + 2 * dx  # ... after reaching its bottom
+    assert r.max() < radius + 0.5 * dx  # and never went through the shell
+    # the sand dropped beyond the rim falls past it to the floor
+    assert x[-1, outside, 1].max() < 0.25
+    rr = np.linalg.norm(x[:, outside] - centre, axis=-1)
+    assert rr.min() > radius - 0.5 * dx

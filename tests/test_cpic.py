@@ -1,0 +1,263 @@
+"""Particle-wise (CPIC) colliders: no tunnelling, Coulomb friction on meshes, moving colliders,
+gradients through contact, identification of the collider friction, and the baselines."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from collider_scenes import ELASTIC, FLUID, SAND, Incline, depth_inside, rollout
+
+from jaxmpm.colliders import Box, Plane
+from jaxmpm.cpic import CollisionField
+from jaxmpm.errors import SceneError
+from jaxmpm.fit import fit, set_param
+from jaxmpm.model import Model
+from jaxmpm.observe import Observation
+from jaxmpm.scene import load_scene
+from jaxmpm.step import simulate
+
+# ----------------------------------------------------------------------------- thin plate
+
+
+def _plate_spec(dx, collision, y0=0.405):
+    """Fluid, sand and an elastic block dropped at 2 m/s on a full-width segment (zero thickness)
+    that lies between two node rows; the domain's bottom is far below."""
+    bodies = [
+        {"shape": "box", "lo": [x0, 0.55], "hi": [x0 + 0.2, 0.7], "velocity": [0.0, -2.0], "material": m, "name": name}
+        for x0, m, name in ((0.08, FLUID, "fluid"), (0.4, SAND, "sand"), (0.72, ELASTIC, "elastic"))
+    ]
+    return {
+        "dim": 2, "dx": dx, "domain": {"lo": [0.0, 0.0], "hi": [1.0, 1.0]}, "frames": 10, "frame_dt": 1 / 24,
+        "substeps": int(round(1.6 / dx)), "gravity": [0.0, -9.8], "collision": collision, "bodies": bodies,
+        "colliders": [{"type": "mesh", "name": "plate", "points": [[1.1, y0], [-0.1, y0]], "contact": "slip"}],
+    }
+
+
+@pytest.mark.parametrize("dx", [0.02, 0.01])
+def test_thin_plate_holds_in_cpic_and_leaks_at_grid_level(dx):
+    y0 = 0.405
+    scene = load_scene(_plate_spec(dx, "cpic"))
+    traj = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None))(scene.params)
+    assert not np.asarray(traj.nan).any()
+    y = np.asarray(traj.x)[..., 1]
+    for sl in scene.model.body_slices():  # every material reached the plate ...
+        assert y[:, sl].min() < y0 + 1.5 * dx
+    assert (y0 - y).max() < 0.5 * dx  # ... and no particle went deeper than dx/2 through it
+    # the persistent tags: every particle near the plate is on its "+" side, none on "-"
+    tag = np.asarray(traj.final.tag)[:, 0]
+    assert np.all(tag >= 0) and np.all(tag[y[-1] < y0 + dx] == 1)
+
+    grid_scene = load_scene(_plate_spec(dx, "grid"))
+    _, xg, _ = rollout(grid_scene.model, grid_scene.params)
+    leaked = (xg[-1, :, 1] < y0 - 0.5 * dx).mean()
+    assert leaked > 0.5  # the grid sees no node inside a zero-thickness plate: the material falls through
+
+
+# ----------------------------------------------------------------------------- friction on a mesh incline
+
+
+@pytest.mark.parametrize("mu,theta,v0", [(0.3, 30.0, 0.0), (0.5, 35.0, 0.0), (0.0, 30.0, 0.0), (0.7, 25.0, 1.0)])
+def test_block_on_inclined_mesh_obeys_coulomb(mu, theta, v0):
+    """An elastic block on a rotated segment: a = g (sin - mu cos) within 5%; launched with
+    tan(theta) < mu it decelerates at that rate and stops."""
+    inc = Incline(theta, mu, v0=v0, frames=8 if v0 == 0 else 20)
+    times, x, v = rollout(inc.model, inc.params)
+    speed = (v @ inc.down).mean(axis=1)
+    if inc.expected > 0:
+        sliding = slice(2, None)
+    else:
+        sliding = (times > 0.05) & (times < 0.8 * v0 / -inc.expected)
+    accel = np.polyfit(times[sliding], speed[sliding], 1)[0]
+    assert accel == pytest.approx(inc.expected, rel=0.05)
+    if inc.expected < 0:  # it stopped (expected at 0.48 s; the last frames are 0.67..0.79 s) and stays
+        assert np.abs(speed[-3:]).max() < 0.02 * v0
+    assert inc.height(x).min() > -0.5 * inc.dx  # no particle sank into the ramp
+
+
+def test_block_stays_put_when_tan_theta_below_mu():
+    """From rest on a 25 degree mesh incline with mu = 0.7 the block settles and stays."""
+    inc = Incline(25.0, 0.7, frames=16)
+    times, x, v = rollout(inc.model, inc.params)
+    along = (x - x[0]) @ inc.down
+    assert np.abs(along[-1] - along[4]).max() < 0.1 * inc.dx  # no creep after settling
+    assert np.abs((v[-4:] @ inc.down).mean(axis=1)).max() < 0.005
+
+
+# ----------------------------------------------------------------------------- gradients and identification
+
+
+def test_gradient_wrt_friction_restitution_and_material_matches_central_differences():
+    inc = Incline(30.0, 0.3, dx=0.04, frames=3, substeps=30, dtype=jnp.float64)
+    params = set_param(inc.params, ("bodies", 0, "velocity"), jnp.asarray(1.0 * inc.down - 0.5 * inc.normal))
+    paths = [("colliders", 0, "friction"), ("colliders", 0, "restitution"), ("bodies", 0, "E")]
+
+    def loss(values):
+        p = params
+        for path, value in zip(paths, values):
+            p = set_param(p, path, value)
+        x = simulate(inc.model, p).x[-1]
+        return jnp.mean(x[:, 0]) + 0.5 * jnp.mean(x[:, 1])  # the final centre of mass
+
+    values = jnp.asarray([0.3, 0.3, 2e5])
+    steps = 1e-6 * jnp.asarray([1.0, 1.0, 2e5])
+
+    @jax.jit
+    def grad_and_fd(v):
+        fd = jax.vmap(lambda e, h: (loss(v + e) - loss(v - e)) / (2 * h))(jnp.diag(steps), steps)
+        return jax.grad(loss)(v), fd
+
+    grad, fd = (np.asarray(a) for a in grad_and_fd(values))
+    assert np.all(np.isfinite(grad))
+    for name, g, f in zip(["friction", "restitution", "E"], grad, fd):
+        assert g != 0.0, name
+        assert abs(g - f) <= 1e-4 * abs(f), (name, g, f)
+
+
+def test_fit_identifies_collider_friction_from_sliding_tracks():
+    truth = Incline(30.0, 0.35, dx=0.04, frames=6, substeps=30)
+    times, x, _ = rollout(truth.model, truth.params)
+    obs = Observation(times=times, positions=x, point_ids="particles")
+    start = Incline(30.0, 0.1, dx=0.04, frames=6, substeps=30)
+    result = fit(start.model, start.params, obs, ["ramp.friction"], max_steps=20)
+    assert float(result.values["ramp.friction"]) == pytest.approx(0.35, abs=0.01)
+    assert result.loss[-1] < 1e-3 * result.loss[0]
+
+
+# ----------------------------------------------------------------------------- moving colliders
+
+
+def _push_spec(collision, velocity=(0.5, 0.0)):
+    return {
+        "dim": 2, "dx": 0.02, "domain": {"lo": [0.0, 0.0], "hi": [1.0, 1.0]}, "frames": 14, "frame_dt": 1 / 24,
+        "substeps": 40, "gravity": [0.0, 0.0], "collision": collision,
+        "bodies": [{"shape": "box", "lo": [0.4, 0.4], "hi": [0.56, 0.56],
+                    "material": {"model": "plasticine", "E": 1e5, "nu": 0.3, "yield_stress": 1e3}}],
+        "colliders": [{"type": "box", "name": "pusher", "lo": [0.2, 0.35], "hi": [0.36, 0.61],
+                       "velocity": list(velocity), "contact": "sticky"}],
+    }
+
+
+@pytest.mark.parametrize("collision", ["cpic", "grid", "particles"])
+def test_moving_box_pushes_material_at_its_speed(collision):
+    scene = load_scene(_push_spec(collision))
+    times, x, v = rollout(scene.model, scene.params)
+    vx = v[..., 0].mean(axis=1)
+    assert abs(vx[1]) < 0.05 if collision != "particles" else True  # not touched before contact
+    np.testing.assert_allclose(vx[-6:], 0.5, rtol=0.05)  # the material moves with the box
+    np.testing.assert_allclose(v[-6:, :, 1].mean(axis=1), 0.0, atol=0.02)
+    if collision != "particles":
+        assert depth_inside(scene.model.colliders[0], times, x).max() < 0.5 * scene.model.grid.dx
+
+
+def _rotation(t, omega):
+    c, s = jnp.cos(omega * t), jnp.sin(omega * t)
+    return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
+
+
+def test_scripted_motion_equals_builtin_rigid_motion_and_does_not_leak():
+    """A box that translates and turns, once with velocity/angular_velocity, once scripted."""
+    v, omega, c0 = np.array([0.3, 0.0]), 2.0, np.array([0.3, 0.45])
+    base = _push_spec("cpic")
+    base["bodies"][0]["material"] = FLUID
+    base["frames"] = 8
+    builtin = load_scene({**base, "colliders": [{"type": "box", "name": "paddle", "lo": [0.22, 0.35],
+                                                  "hi": [0.38, 0.55], "velocity": v.tolist(),
+                                                  "angular_velocity": [omega], "contact": "slip"}]})
+    paddle = builtin.model.colliders[0]
+    np.testing.assert_allclose(paddle.pivot, c0)
+    scripted_box = Box([0.22, 0.35], [0.38, 0.55], contact="slip", name="paddle",
+                       motion=lambda t: (jnp.asarray(c0, t.dtype) + jnp.asarray(v, t.dtype) * t, _rotation(t, omega)))
+    scripted = builtin.model.with_colliders([scripted_box])
+    times, xa, va = rollout(builtin.model, builtin.params)
+    _, xb, vb = rollout(scripted, builtin.params)
+    np.testing.assert_allclose(xb, xa, atol=1e-5)
+    np.testing.assert_allclose(vb, va, atol=1e-3)
+    assert np.abs(va[-1]).max() > 0.1  # the paddle did stir the fluid
+    assert depth_inside(paddle, times, xa).max() < 0.5 * builtin.model.grid.dx
+
+
+def test_moving_plane_lifts_material():
+    spec = _push_spec("cpic")
+    spec["gravity"] = [0.0, -9.8]
+    spec["bodies"][0].update(lo=[0.4, 0.2], hi=[0.56, 0.3], material=ELASTIC)
+    spec["colliders"] = [{"type": "plane", "name": "lift", "point": [0.0, 0.2], "normal": [0.0, 1.0],
+                          "velocity": [0.0, 0.3], "contact": "sticky"}]
+    scene = load_scene(spec)
+    assert scene.model.colliders[0].velocity == (0.0, 0.3)
+    times, x, v = rollout(scene.model, scene.params)
+    np.testing.assert_allclose(v[-4:, :, 1].mean(axis=1), 0.3, atol=0.03)
+    floor = 0.2 + 0.3 * times
+    assert np.all(x[..., 1].min(axis=1) > floor - 0.5 * scene.model.grid.dx)
+
+
+# ----------------------------------------------------------------------------- several colliders
+
+
+def test_collider_beside_the_floor_is_hit_after_the_floor():
+    """Fluid falls on the floor, spreads, and runs into a mesh block standing on the floor."""
+    spec = {
+        "dim": 2, "dx": 0.02, "domain": {"lo": [0.0, 0.0], "hi": [1.0, 0.6]}, "frames": 14, "frame_dt": 1 / 24,
+        "substeps": 60, "gravity": [0.0, -9.8],
+        "bodies": [{"shape": "box", "lo": [0.1, 0.2], "hi": [0.35, 0.4], "material": FLUID}],
+        "colliders": [
+            {"type": "plane", "name": "floor", "point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "slip"},
+            {"type": "mesh", "name": "block", "points": [[0.6, 0.1], [0.8, 0.1], [0.8, 0.3], [0.6, 0.3]],
+             "closed": True, "contact": "slip"},
+        ],
+    }
+    scene = load_scene(spec)
+    assert scene.model.fields[0] is None and isinstance(scene.model.fields[1], CollisionField)
+    traj = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None))(scene.params)
+    times, x = np.asarray(traj.times), np.asarray(traj.x)
+    dx = scene.model.grid.dx
+    depth = depth_inside(scene.model.colliders[1], times, x)
+    near_floor = x[..., 1].min(axis=1) < 0.1 + dx
+    near_block = depth.max(axis=1) > -dx
+    first_floor, first_block = np.argmax(near_floor), np.argmax(near_block)
+    assert near_floor.any() and near_block.any() and first_floor < first_block
+    assert depth.max() < 0.5 * dx
+    assert x[..., 1].min() > 0.1 - 0.5 * dx
+    tags = np.asarray(traj.final.tag)
+    assert np.all(tags[:, 0] == 0) and np.all(tags[:, 1] >= 0)  # planes carry no tag; the block: outside
+
+
+# ----------------------------------------------------------------------------- model and scene paths
+
+
+def test_fields_are_built_once_for_the_mode(tmp_path):
+    spec = _push_spec("cpic")
+    spec["colliders"].append({"type": "plane", "name": "floor", "point": [0.0, 0.05], "normal": [0.0, 1.0]})
+    model = load_scene(spec).model
+    assert isinstance(model.fields[0], CollisionField) and model.fields[1] is None
+    assert model.boundary == (None, None)
+    # moving colliders: the field lives on a lattice around the collider's rest placement
+    assert model.fields[0].origin != tuple(model.grid.origin)
+    particles = model.with_collision("particles")
+    assert particles.boundary[0] is not None and particles.boundary[1] is None
+    assert particles.fields[0] is model.fields[0]  # kept, not rebuilt
+    spacing = np.diff(np.sort(np.unique(np.round(np.asarray(particles.boundary[0].x)[:, 1], 9))))
+    assert spacing.min() > 0.0 and np.max(np.asarray(particles.boundary[0].x)[:, 0]) <= 0.36 + 1e-9
+    assert model.with_substeps(10).fields[0] is model.fields[0]
+    with pytest.raises(ValueError, match="collision"):
+        Model(grid=model.grid, bodies=model.bodies, collision="walls")
+
+
+def test_scene_collider_errors_name_the_collider():
+    spec = _push_spec("cpic", velocity=(0.0, 0.0))
+    spec["colliders"][0].update(lo=[2.0, 2.0], hi=[2.5, 2.5])
+    with pytest.raises(SceneError, match="'pusher'.*outside the domain"):
+        load_scene(spec)
+    spec = _push_spec("cpic")
+    spec["colliders"] = [{"type": "plane", "name": "ceiling", "point": [0.0, 2.0], "normal": [0.0, 1.0]}]
+    with pytest.raises(SceneError, match="'ceiling'.*whole domain"):
+        load_scene(spec)
+    spec["colliders"] = [{"type": "plane", "name": "floor", "point": [0.0, 0.1], "normal": [0.0, 1.0],
+                          "velocity": [0.0]}]
+    with pytest.raises(SceneError, match="'floor'.*'velocity'"):
+        load_scene(spec)
+    with pytest.raises(SceneError, match="'motion' must be a callable"):
+        Box([0.1, 0.1], [0.2, 0.2], motion="up")
+    with pytest.raises(SceneError, match="either 'motion' or 'velocity'"):
+        Plane([0.0, 0.1], [0.0, 1.0], velocity=[0.0, 1.0], motion=lambda t: (t, t))
