@@ -998,6 +998,10 @@ def _holdout_masks(problem: _Problem, holdout, holdout_sequences, holdout_views)
     return train, heldout, entry_train
 
 
+#: ridge (relative to unit-norm Jacobian columns) of the screen's least squares
+_SCREEN_RIDGE = 1e-4
+
+
 def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     """Gauss–Newton prediction of the training RSS with only the base columns free and with the
     extension's columns added (bounded least squares). Returns (RSS_base, RSS_ext, step)."""
@@ -1009,10 +1013,15 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     Jw = np.where(dead[None, :], 0.0, Jw)
     norms = np.where(dead, 1.0, norms)
     b = -rw
-    cb = Jw[:, base_cols_local]
+    # A small ridge on the unit-norm columns: float32 Jacobians are accurate to ~1e-6, so a
+    # direction that only the difference of two nearly collinear columns spans (an extension
+    # that duplicates a base parameter) is noise and must not be credited with a gain.
+    ridge = _SCREEN_RIDGE
+    cb = Jw[:, base_cols_local] / norms[base_cols_local]
     if cb.shape[1]:
-        sb = np.linalg.lstsq(cb / norms[base_cols_local], b, rcond=None)[0]
-        rss_b = float(np.sum((cb / norms[base_cols_local] @ sb - b) ** 2))
+        aug = np.vstack([cb, ridge * np.eye(cb.shape[1])])
+        sb = np.linalg.lstsq(aug, np.concatenate([b, np.zeros(cb.shape[1])]), rcond=None)[0]
+        rss_b = float(np.sum((cb @ sb - b) ** 2))
     else:
         rss_b = float(b @ b)
     cols = np.concatenate([base_cols_local, ext_cols_local]).astype(int)
@@ -1021,7 +1030,9 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     ub = np.concatenate([np.full(len(base_cols_local), np.inf), hi * norms[ext_cols_local]])
     lb = np.minimum(lb, 0.0)
     ub = np.maximum(ub, 0.0)
-    res = lsq_linear(A, b, bounds=(lb, ub), method="bvls" if A.shape[1] < 40 else "trf")
+    aug = np.vstack([A, ridge * np.eye(A.shape[1])])
+    res = lsq_linear(aug, np.concatenate([b, np.zeros(A.shape[1])]), bounds=(lb, ub),
+                     method="bvls" if A.shape[1] < 40 else "trf")
     rss_e = float(np.sum((A @ res.x - b) ** 2))
     step = res.x / norms[cols]
     return rss_b, min(rss_e, rss_b), step[len(base_cols_local):]
