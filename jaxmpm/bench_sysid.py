@@ -121,11 +121,12 @@ def preset_cases(name: str) -> tuple[Preset, list[Case]]:
         core = ("newtonian", "viscoplastic", "sand")
         # ordered so that a partial run still covers every axis of the protocol
         cases = _core(core, COLLIDERS, 1, ["tracks"], ["cpic"])
-        cases += _core(core, COLLIDERS, 1, ["silhouettes"], ["cpic"])
+        cases += _core(core, ["bunny"], 1, ["silhouettes"], ["cpic"])
         cases += _core(core, ["bunny"], 1, ["tracks"], ["grid", "particles"])
         cases += [Case("newtonian", c, 0, "tracks", "cpic") for c in ("side", "small", "large", "bowl", "three")]
         cases += [Case(m, "box", 0, "tracks", "cpic") for m in ("elastic", "plasticine")]
-        cases += [Case(m, c, 1, "tracks", "cpic") for m in core for c in COLLIDERS]
+        cases += [Case(m, "bunny", 1, "tracks", "cpic") for m in core]
+        cases += [Case(m, c, 0, "silhouettes", "cpic") for m in core for c in ("box", "armadillo")]
         return p, cases
     if name == "full":
         p = Preset(dx=0.02, substeps=100, frames=16, views=11, res=100, pixels=512, sets=5, max_steps=40)

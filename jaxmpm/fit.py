@@ -289,13 +289,14 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
     In free flight every particle moves with one velocity (no stress), so contact shows
     as the first frame interval whose displacements depart from a common translation by
     more than ``tol`` (default 5 % of a grid cell per frame, 95th percentile over the
-    points). Uses the observed tracks when they are per-particle, else a rollout at
-    ``params`` (the initial guess). Returns None when nothing touches within the data, and
+    points). Uses the observed tracks when they are per-particle (``point_ids ==
+    "particles"``), else a rollout at ``params`` (the initial guess; :func:`fit` re-detects
+    contact with the fitted velocity and refits it on a shorter window if needed). Returns None when nothing touches within the data, and
     0.0 when the body is in contact from the start.
     """
     times = np.asarray(observation.times, float)
     tol = 0.05 * model.grid.dx if tol is None else tol
-    if observation.positions is not None and len(times) >= 2:
+    if observation.positions is not None and observation.point_ids == "particles" and len(times) >= 2:
         x = np.asarray(observation.positions, float)
         disp = _velocity_dispersion(x)
         scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
@@ -850,6 +851,10 @@ def fit(
                 raise JaxmpmError(f"stage {s.label or s.names}: {unknown} are not among the fitted names {names}")
     for note in notes:
         say(note)
+    # contact found in a rollout of the initial guess: re-detect it with the fitted velocity
+    vel_names = [n for n in names if _leaf(n) == "velocity"]
+    replan = (stages == "auto" and velocity_until is None and bool(vel_names)
+              and not (observation.positions is not None and observation.point_ids == "particles"))
 
     y_all = {n: to_unconstrained(n, jnp.asarray(v, _float_dtype())) for n, v in initial.items()}
     halvings_left = max_dt_halvings
@@ -932,6 +937,18 @@ def fit(
             stage_std = _gauss_newton_std(res, {n: y_all[n] for n in snames}, snames, objective.count,
                                           rj=outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
+        if replan and si == 0 and stage.until is not None and set(snames) == set(vel_names):
+            replan = False
+            now = apply_unconstrained(model, params, list(y_all), y_all)
+            t_new = contact_time(model, now, observation)
+            if t_new is not None and 0 < t_new < stage.until - 1e-3 * model.frame_dt:
+                rest, _ = plan_stages(model, now, observation, names, velocity_until=t_new,
+                                      warmup_frames=warmup_frames, refine_velocity=refine_velocity)
+                plan[si + 1:] = rest
+                last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+                notes.append(f"with the fitted velocity the body touches by t = {t_new:.4g} s, earlier than in the "
+                             "initial guess's rollout: the velocity is refitted on the shorter window")
+                say(notes[-1])
 
     final_params = apply_unconstrained(model, params, names, y_all)
     values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}
