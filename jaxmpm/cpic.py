@@ -652,7 +652,8 @@ def _corner_lookup(grid: Grid, table, x):
     multilinear weights of the affine corners; the normal is the normalised weighted sum.
 
     Returns:
-        ``phi (N,)`` (``+band`` where no corner is affine), ``normal (N, D)`` (``+`` side).
+        ``phi (N,)`` (``+2 dx`` where no corner is affine), ``normal (N, D)`` (``+`` side), and
+        whether some corner is affine (``phi`` is meaningful), ``(N,)`` bool.
     """
     dtype = x.dtype
     n, dim = x.shape
@@ -676,7 +677,7 @@ def _corner_lookup(grid: Grid, table, x):
         snrm = snrm + wa[:, None] * nrm
     sw, sphi, snrm = materialize((sw, sphi, snrm), jnp.isfinite(x[0, 0]))
     near = sw > 0
-    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * grid.dx), _safe_normalize(snrm)
+    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * grid.dx), _safe_normalize(snrm), near
 
 
 def _corners(dim: int):
@@ -714,7 +715,7 @@ def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, col
         minus = minus | jnp.left_shift((affine & (node_sd < 0)).astype(jnp.int32), o)
     near = sw > 0
     phi = jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx)
-    return plus, minus, phi, rows_times(_safe_normalize(snrm), rot.T)
+    return plus, minus, phi, rows_times(_safe_normalize(snrm), rot.T), near
 
 
 def gather_contact(
@@ -736,9 +737,10 @@ def gather_contact(
     * **Signed distance and normal** of the particle (``+`` side): from the affine corners
       of its cell, each corner's signed distance carried to the particle along its normal
       (exact for planar surfaces) and averaged with multilinear weights.
-    * **Persistent tag**: acquired as ``sign(phi)`` when the particle first comes near, kept
-      while it stays near (this is what stops tunnelling: a particle pushed slightly through
-      the surface keeps its side) and cleared when it leaves the band.
+    * **Persistent tag**: acquired as ``sign(phi)`` when the particle first comes near (and
+      ``phi`` is measured: some cell corner affine), kept while it stays near (this is what
+      stops tunnelling: a particle pushed slightly through the surface keeps its side) and
+      cleared when it leaves the band.
     * **Compatibility**: a stencil node is incompatible when it is affine and on the side
       opposite to the particle's tag.
 
@@ -762,14 +764,16 @@ def gather_contact(
         table = field.rows.astype(dtype)
         moving = bool(getattr(col, "moving", False))
         if moving or not field.on_grid(grid):
-            plus, minus, phi, nrm = _moving_lookup(grid, st, x, field, table, col, time)
+            plus, minus, phi, nrm, measured = _moving_lookup(grid, st, x, field, table, col, time)
         else:
             bits = field.stencil_bits[base]
             plus, minus = bits[:, 0], bits[:, 1]
-            phi, nrm = _corner_lookup(grid, table, x)
+            phi, nrm, measured = _corner_lookup(grid, table, x)
         near = (plus | minus) != 0
         old = new_tag[:, k]
-        acquired = jnp.where(jax.lax.stop_gradient(phi) >= 0, 1, -1).astype(jnp.int8)
+        # acquire a side only where phi is measured (some cell corner affine: always the case
+        # within 1.5 dx of the surface, i.e. before any stencil node can be on the other side)
+        acquired = jnp.where(measured, jnp.where(jax.lax.stop_gradient(phi) >= 0, 1, -1), 0).astype(jnp.int8)
         t = jnp.where(near, jnp.where(old != 0, old, acquired), 0).astype(jnp.int8)
         new_tag = new_tag.at[:, k].set(t)
         tf = t.astype(dtype)

@@ -55,6 +55,32 @@ def test_thin_plate_holds_in_cpic_and_leaks_at_grid_level(dx):
     assert leaked > 0.5  # the grid sees no node inside a zero-thickness plate: the material falls through
 
 
+def test_thin_wall_separates_the_materials_on_its_two_sides():
+    """Fluid thrown at a zero-thickness wall from its "-" side while an elastic block rests
+    against its "+" side, 1.5 dx away: the wall stops the fluid and the block feels nothing
+    (no mass, momentum or stress crosses the wall through the shared grid nodes)."""
+    dx = 0.02
+    spec = {
+        "dim": 2, "dx": dx, "domain": {"lo": [0.0, 0.0], "hi": [1.0, 1.0]}, "frames": 6, "frame_dt": 1 / 24,
+        "substeps": 60, "gravity": [0.0, 0.0],
+        "bodies": [
+            {"shape": "box", "lo": [0.3, 0.4], "hi": [0.495, 0.6], "velocity": [1.5, 0.0], "material": FLUID,
+             "name": "fluid"},
+            {"shape": "box", "lo": [0.515, 0.4], "hi": [0.7, 0.6], "material": ELASTIC, "name": "block"},
+        ],
+        "colliders": [{"type": "mesh", "name": "wall", "points": [[0.505, -0.1], [0.505, 1.1]], "contact": "slip"}],
+    }
+    scene = load_scene(spec)
+    traj = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None))(scene.params)
+    x, v = np.asarray(traj.x), np.asarray(traj.v)
+    fluid, block = scene.model.body_slices()
+    assert np.abs(v[:, block]).max() < 1e-3  # the block did not move
+    assert x[:, fluid, 0].max() < 0.505 + 0.5 * dx  # the fluid did not cross
+    assert v[-1, fluid, 0].mean() < 0.3  # it was stopped by the wall
+    tags = np.asarray(traj.final.tag)[:, 0]
+    assert np.all(tags[fluid] <= 0) and np.all(tags[block] >= 0)
+
+
 # ----------------------------------------------------------------------------- friction on a mesh incline
 
 
