@@ -257,7 +257,7 @@ def signature_hints(strata: dict, convergence: dict) -> list[str]:
         if slope is not None:
             if slope > 1.5:
                 hints.append(f"It grows like t^{slope:.1f} ({strata['growth_frames']} frames): an acceleration is wrong "
-                             "(gravity, drag, a pushing collider).")
+                             "(gravity, drag, friction, a pushing collider).")
             elif slope > 0.5:
                 hints.append(f"It grows like t^{slope:.1f}: a velocity is wrong (initial velocity, a moving collider).")
             else:
@@ -595,7 +595,8 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
               "| parameter | value |", "|---|---|"]
         for k, v in d.parameters.items():
             spec = d.problem.entry(k).spec
-            L.append(f"| `{k}` | {_pm(v, d.std.get(k))} {spec.unit if spec else ''} |")
+            unit = spec.unit if spec is not None and spec.unit != "-" else ""
+            L.append(f"| `{k}` | {_pm(v, d.std.get(k))} {unit} |")
         L.append("")
         for e in d.causes:
             L.append(f"* `{e}`: {X.EXTENSIONS[e].title} — acts in the {X.EXTENSIONS[e].acts_in}; "
