@@ -35,11 +35,13 @@ def obs():
     return _observe(_spec())
 
 
-@pytest.mark.parametrize("method", ["adam", "bfgs", pytest.param("lm-optimistix", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["adam", pytest.param("bfgs", marks=pytest.mark.slow),
+                                    pytest.param("lm-optimistix", marks=pytest.mark.slow)])
 def test_other_optimisers_reduce_the_loss(obs, method):
     start = load_scene(_spec(mu=20.0))
     seen = []
-    result = fit(start.model, start.params, obs, ["mu"], method=method, stages=None, max_steps=12,
+    steps = 6 if method == "adam" else 12
+    result = fit(start.model, start.params, obs, ["mu"], method=method, stages=None, max_steps=steps,
                  progress=lambda i, loss: seen.append(loss))
     assert result.method == method and len(seen) >= 1
     assert result.loss[-1] < 0.5 * result.loss[0]
@@ -51,9 +53,9 @@ def test_other_optimisers_reduce_the_loss(obs, method):
     if method == "adam":
         # PAC-NeRF's learning rates: Adam's first steps move log10(mu) by lr = 0.1 each
         assert ADAM_LEARNING_RATES["mu"] == 0.1 and ADAM_LEARNING_RATES["friction_angle"] == 1.0
-        assert len(seen) == 12 and not result.converged and "did not converge" in result.message
-        steps = np.log10(float(result.values["mu"]) / 20.0) / 0.1
-        assert 1.0 <= steps <= 12.0 and steps == pytest.approx(round(steps), abs=0.15), steps
+        assert len(seen) == 6 and not result.converged and "did not converge" in result.message
+        moved = np.log10(float(result.values["mu"]) / 20.0) / 0.1
+        assert 1.0 <= moved <= 6.0 and moved == pytest.approx(round(moved), abs=0.15), moved
 
 
 def test_staged_fit_velocity_first_then_material():
@@ -76,9 +78,9 @@ def test_staged_fit_velocity_first_then_material():
 
 
 def test_unstable_start_halves_dt_and_recovers():
-    """Two substeps per frame are unstable at this stiffness: the fit halves dt until stable."""
+    """Four substeps per frame are unstable at this stiffness: the fit halves dt until stable."""
     obs = _observe(_spec(substeps=8))
-    start = load_scene(_spec(mu=20.0, substeps=2))
+    start = load_scene(_spec(mu=20.0, substeps=4))
     result = fit(start.model, start.params, obs, ["mu"], stages=None, max_steps=30)
     assert result.substeps == 8 and any("halved dt" in n for n in result.notes), (result.substeps, result.notes)
     assert result.converged, result.message

@@ -34,10 +34,11 @@ SCRIPT = textwrap.dedent(
     out = sweep(scene.model, scene.params, {{"mu": mus, "velocity": vels}}, fn=fn)
     chunked = sweep(scene.model, scene.params, {{"mu": mus, "velocity": vels}}, fn=fn, batch_size=1)
     worst = 0.0
+    reference = jax.jit(lambda p: fn(simulate(scene.model, p, checkpoint=None)))
     for i, (mu, v) in enumerate(zip(mus, vels)):
         p = set_param(scene.params, ("bodies", 0, "mu"), jnp.asarray(mu, jnp.float32))
         p = set_param(p, ("bodies", 0, "velocity"), jnp.asarray(v, jnp.float32))
-        ref = jax.jit(lambda p: fn(simulate(scene.model, p, checkpoint=None)))(p)
+        ref = reference(p)
         for key in ("front", "y"):
             worst = max(worst, float(np.max(np.abs(np.asarray(ref[key]) - out[key][i]))),
                         float(np.max(np.abs(np.asarray(ref[key]) - chunked[key][i]))))

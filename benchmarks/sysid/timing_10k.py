@@ -1,0 +1,100 @@
+"""Cost of one identification step at ~10k particles (the timing target's scale).
+
+Builds the benchmark's Newtonian-on-box case at dx = 0.02 (8,000 particles, a 0.2 m cube
+at 8 particles per cell; 56^3 grid) and times, after compilation:
+
+* one forward rollout of 16 frames (``simulate``),
+* one Levenberg–Marquardt evaluation (residuals + forward-mode Jacobian for mu, kappa) on
+  tracks,
+* the same for silhouettes (11 views, 128 pixels per view and frame),
+
+and the compile time of each. ``--fit`` also runs the whole staged identification from
+tracks (hours on a shared 2-core CPU). Prints one JSON line.
+
+    python benchmarks/sysid/timing_10k.py [--substeps 100] [--fit]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def main() -> None:
+    from jaxmpm.bench_sysid import Case, INITIAL_GUESS, Preset, rig, scene_spec, truth_values
+    from jaxmpm.fit import apply_unconstrained, fit, residuals_and_jacobian, to_unconstrained
+    from jaxmpm.losses import build_objective, make_fit_renderer
+    from jaxmpm.observe import Observation
+    from jaxmpm.render import render_views
+    from jaxmpm.scene import load_scene
+    from jaxmpm.step import simulate
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--dx", type=float, default=0.02)
+    parser.add_argument("--substeps", type=int, default=100)
+    parser.add_argument("--fit", action="store_true", help="also run the whole identification from tracks")
+    parser.add_argument("--no-images", action="store_true")
+    args = parser.parse_args()
+
+    preset = Preset(dx=args.dx, substeps=args.substeps, frames=16, views=11, res=96, pixels=128, sets=1, max_steps=25)
+    case = Case("newtonian", "box", 0, "tracks", "cpic")
+    truth = truth_values("newtonian", 0)
+    scene = load_scene(scene_spec(case, preset, truth))
+    out = {"particles": scene.model.num_particles, "grid": list(scene.model.grid.shape), "dx": args.dx,
+           "substeps": scene.model.substeps, "frames": 16}
+
+    run = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None).x)
+    t0 = time.perf_counter()
+    x = np.asarray(run(scene.params))
+    out["forward_compile_and_run_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    x = np.asarray(run(scene.params))
+    out["forward_s"] = time.perf_counter() - t0
+    times = np.arange(16) / 24.0
+    names = ["mu", "kappa"]
+    y = {n: to_unconstrained(n, jnp.asarray(INITIAL_GUESS["newtonian"][n] * 3.0, jnp.float32)) for n in names}
+
+    def time_rj(obs, weights, label):
+        objective = build_objective(scene.model, obs, weights=weights, num_pixels=preset.pixels, colors=None)
+
+        def residuals(yy):
+            return objective.residuals(apply_unconstrained(scene.model, scene.params, names, yy))
+
+        rj, flat, _ = residuals_and_jacobian(residuals, y)
+        t0 = time.perf_counter()
+        jax.block_until_ready(rj(flat))
+        out[f"{label}_rj_compile_and_run_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        jax.block_until_ready(rj(flat))
+        out[f"{label}_rj_s"] = time.perf_counter() - t0
+
+    tracks = Observation(times=times, positions=x, point_ids="particles")
+    time_rj(tracks, None, "tracks")
+    if not args.no_images:
+        rendered = render_views(x, rig(preset), make_fit_renderer("volume", scene.model))
+        images = Observation(times=times, masks=rendered["masks"], intrinsics=rendered["intrinsics"],
+                             cam_to_world=rendered["cam_to_world"])
+        time_rj(images, {"silhouette": 1.0}, "silhouettes")
+    if args.fit:
+        start = load_scene(scene_spec(case, preset, INITIAL_GUESS["newtonian"], velocity=(0.0, 0.0, 0.0)))
+        t0 = time.perf_counter()
+        result = fit(start.model, start.params, tracks, names + ["velocity"], max_steps=preset.max_steps)
+        out["fit_s"] = time.perf_counter() - t0
+        out["fit_iterations"] = result.iterations
+        out["fit_converged"] = result.converged
+        out["fit_errors"] = {n: abs(float(np.log10(result.values[n] / truth[n]))) for n in names}
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    import os
+
+    out["load_average"] = os.getloadavg()[0]
+    print("TIMING-JSON " + json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
