@@ -4,6 +4,8 @@ The public API is re-exported here; private module names may change.
 """
 
 from . import constitutive as constitutive
+from . import extensions as extensions
+from . import losses as losses
 from . import render as render
 from .colliders import Box as Box
 from .colliders import Collider as Collider
@@ -22,12 +24,16 @@ from .constitutive import Viscoplastic as Viscoplastic
 from .constitutive import svd as svd
 from .cpic import CollisionField as CollisionField
 from .cpic import build_collision_field as build_collision_field
+from .datasets import load_pacnerf as load_pacnerf
+from .discover import discover as discover
 from .errors import JaxmpmError as JaxmpmError
 from .errors import ObservationError as ObservationError
 from .errors import SceneError as SceneError
 from .errors import SimulationError as SimulationError
 from .fit import FitResult as FitResult
 from .fit import fit as fit
+from .fit import fit_scene as fit_scene
+from .losses import build_objective as build_objective
 from .model import Body as Body
 from .model import Model as Model
 from .model import initial_state as initial_state
@@ -43,5 +49,6 @@ from .step import Trajectory as Trajectory
 from .step import run_frames as run_frames
 from .step import simulate as simulate
 from .step import step as step
+from .sweep import sweep as sweep
 
 __version__ = "0.1.0"

@@ -1,8 +1,15 @@
-"""``jaxmpm bench step``: time one MLS-MPM step against Taichi and Warp on the same machine.
+"""``jaxmpm bench step | scaling | memory``: performance of the MLS-MPM step.
+
+* ``step``: one step against Taichi and Warp on the same machine, forward and forward +
+  backward, per material.
+* ``scaling``: forward time per step versus particle count (fixed grid) and versus grid size
+  (fixed particle count), with the fitted exponent of time ~ N^p.
+* ``memory``: peak RSS of the gradient through a long checkpointed rollout (default
+  16 frames x 200 substeps at 25k particles).
 
 The scene is the peers' (``benchmarks/peers/common.py``): a cube of elastic material at ~8
-particles per cell in the unit box on a 64^3 grid, dt = 1e-4, gravity, slip walls. Each
-measurement runs in its own subprocess so that its peak RSS is its own.
+particles per cell in the unit box (64^3 grid by default), dt = 1e-4, gravity, slip walls.
+Each measurement runs in its own subprocess so that its peak RSS is its own.
 """
 
 from __future__ import annotations
@@ -96,6 +103,30 @@ def measure_jax(material: str, n_particles: int, grid_n: int, steps: int, mode: 
             "n_particles": int(model.num_particles), "version": jax.__version__}
 
 
+def measure_memory(material: str, n_particles: int, grid_n: int, frames: int, substeps: int, checkpoint: str) -> dict:
+    """Time and peak RSS of ``jax.grad`` through ``simulate`` over ``frames x substeps`` steps."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from .step import simulate
+
+    model, params = _scene_model(n_particles, grid_n, material, jnp.float32)
+    model = dataclasses.replace(model, frames=frames + 1, substeps=substeps)
+
+    def loss(params):
+        return jnp.mean(simulate(model, params, checkpoint=checkpoint).x[-1] ** 2)
+
+    fn = jax.jit(jax.grad(loss))
+    t0 = time.perf_counter()
+    grads = jax.block_until_ready(fn(params))
+    seconds = time.perf_counter() - t0
+    finite = all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
+    return {"seconds_with_compile": seconds, "steps": frames * substeps, "finite": finite,
+            "n_particles": int(model.num_particles), "checkpoint": checkpoint}
+
+
 def _child(argv: list[str]) -> None:
     """Run one measurement and print its JSON with the process's peak RSS."""
     import resource
@@ -103,6 +134,8 @@ def _child(argv: list[str]) -> None:
     kind, rest = argv[0], json.loads(argv[1])
     if kind == "jax":
         out = measure_jax(**rest)
+    elif kind == "memory":
+        out = measure_memory(**rest)
     else:
         sys.path.insert(0, str(_repo_root()))
         module = __import__(f"benchmarks.peers.{kind}_step", fromlist=["bench"])
@@ -181,7 +214,71 @@ def bench_step(argv: list[str]) -> int:
     return 0
 
 
+def bench_scaling(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="jaxmpm bench scaling", description=__doc__)
+    parser.add_argument("--particles", default="10000,25000,50000,100000,200000,400000")
+    parser.add_argument("--grids", default="32,48,64,96,128", help="grid sizes at 25,000 particles")
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--material", default="elastic")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+    by_n, by_grid = [], []
+    for n in (int(v) for v in args.particles.split(",")):
+        print(f"timing {n} particles on 64^3 ...", file=sys.stderr, flush=True)
+        by_n.append(_run_child("jax", material=args.material, mode="forward", n_particles=n, grid_n=64, steps=args.steps))
+    for g in (int(v) for v in args.grids.split(",")):
+        print(f"timing 25000 particles on {g}^3 ...", file=sys.stderr, flush=True)
+        by_grid.append({"grid": g, **_run_child("jax", material=args.material, mode="forward", n_particles=25_000,
+                                                 grid_n=g, steps=args.steps)})
+    ok = [r for r in by_n if "skipped" not in r]
+    exponent = float("nan")
+    if len(ok) >= 2:
+        exponent = float(np.polyfit(np.log([r["n_particles"] for r in ok]), np.log([r["ms_per_step"] for r in ok]), 1)[0])
+    print(f"\nmachine: {machine_description()}; {args.material}, float32, forward step\n")
+    print(f"{'particles':>10}{'grid':>6}{'ms/step':>10}{'us/particle':>13}{'compile s':>11}{'peak RSS MB':>13}")
+    for r, g in [(r, 64) for r in by_n] + [(r, r["grid"]) for r in by_grid]:
+        if "skipped" in r:
+            print(f"{'':>10}{g:>6}  {r['skipped']}")
+            continue
+        print(f"{r['n_particles']:>10}{g:>6}{r['ms_per_step']:>10.2f}{1e3 * r['ms_per_step'] / r['n_particles']:>13.3f}"
+              f"{r['compile_s']:>11.1f}{r['peak_rss_mb']:>13.0f}")
+    print(f"\nfitted exponent of time ~ N^p over {len(ok)} particle counts: p = {exponent:.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine_description(), "by_particles": by_n,
+                                               "by_grid": by_grid, "exponent": exponent}, indent=2))
+    return 0
+
+
+def bench_memory(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="jaxmpm bench memory", description=__doc__)
+    parser.add_argument("--particles", type=int, default=25_000)
+    parser.add_argument("--grid", type=int, default=64)
+    parser.add_argument("--frames", type=int, default=16)
+    parser.add_argument("--substeps", type=int, default=200)
+    parser.add_argument("--checkpoint", default="nested", choices=("step", "frame", "nested"))
+    parser.add_argument("--material", default="elastic")
+    args = parser.parse_args(argv)
+    print(f"gradient through {args.frames} x {args.substeps} steps ...", file=sys.stderr, flush=True)
+    r = _run_child("memory", material=args.material, n_particles=args.particles, grid_n=args.grid,
+                   frames=args.frames, substeps=args.substeps, checkpoint=args.checkpoint)
+    print(f"\nmachine: {machine_description()}")
+    if "skipped" in r:
+        print(f"gradient run failed: {r['skipped']}")
+        return 1
+    print(f"{r['n_particles']} particles, {args.grid}^3 grid, {r['steps']} steps, checkpoint={r['checkpoint']}: "
+          f"peak RSS {r['peak_rss_mb']:.0f} MB, {r['seconds_with_compile']:.0f} s including compilation, "
+          f"gradient finite: {r['finite']}")
+    return 0
+
+
+def bench_sysid(argv: list[str]) -> int:
+    from .bench_sysid import run_sysid_bench
+
+    return run_sysid_bench(argv)
+
+
+BENCHES = {"step": bench_step, "scaling": bench_scaling, "memory": bench_memory, "sysid": bench_sysid}
+
+
 def run_bench(what: str, argv: list[str]) -> int:
-    if what == "step":
-        return bench_step(argv)
-    raise ValueError(what)
+    return BENCHES[what](argv)

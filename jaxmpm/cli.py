@@ -298,7 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_discover)
 
     p = sub.add_parser("bench", help="performance benchmarks")
-    p.add_argument("what", choices=("step",), help="which benchmark")
+    p.add_argument("what", choices=("step", "scaling", "memory", "sysid"),
+                   help="step (vs Taichi/Warp), scaling (time vs particles and grid), memory (long gradient), "
+                        "sysid (identification benchmark)")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     p.set_defaults(func=cmd_bench)
     return parser

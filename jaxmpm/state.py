@@ -164,7 +164,11 @@ def compute_stencil(grid: Grid, x: Float[Array, "N D"]) -> Stencil:
     """Stencil of particles at ``x`` (positions are assumed inside the padded grid)."""
     origin = jnp.asarray(grid.origin, x.dtype)
     xi = (x - origin) / grid.dx
+    # Clipped so every stencil node is a valid index even for a NaN or escaped particle
+    # (the scatters and gathers then promise in-bounds indices; a NaN still propagates
+    # through the weights).
     base = jnp.floor(jax.lax.stop_gradient(xi) - 0.5).astype(jnp.int32)
+    base = jnp.clip(base, 0, jnp.asarray(grid.shape, jnp.int32) - 3)
     fx = tuple(xi[:, d] - base[:, d].astype(x.dtype) for d in range(x.shape[1]))
     w = (
         tuple(0.5 * (1.5 - f) ** 2 for f in fx),
@@ -190,3 +194,44 @@ def offset_terms(grid: Grid, st: Stencil, offset: tuple[int, ...], with_dpos: bo
     weight = functools.reduce(operator.mul, [st.w[o][d] for d, o in enumerate(offset)])
     dpos = jnp.stack([o - f for o, f in zip(offset, st.fx)], axis=-1) if with_dpos else None
     return index, weight, dpos
+
+
+# --------------------------------------------------------------------------- transfers
+#
+# G2P reads all 3^D stencil nodes of all particles in ONE gather of ``(3^D N, C)`` rows, split
+# into per-offset ``(N, C)`` blocks: reverse mode transposes it into one scatter (and the
+# split into one concatenation). With 3^D separate gathers, each transposes into its own
+# zero-filled grid-sized buffer and the buffers are summed, which made G2P's backward pass
+# ~10x the forward (docs/benchmarks.md). P2G scatters per offset into one buffer updated in
+# place (the transpose, a gather per offset, is cheap). Rows are padded to a power-of-two
+# width: XLA's CPU scatter-add is 4-5x slower on 3-wide rows than on 4-wide ones (measured).
+
+
+def stencil_index(grid: Grid, st: Stencil) -> Int[Array, " KN"]:
+    """Flat node index of every stencil node of every particle, ``(3^D N,)``, offset-major
+    (the order of :func:`stencil_offsets`)."""
+    return jnp.concatenate([offset_terms(grid, st, offset, with_dpos=False)[0] for offset in stencil_offsets(st.dim)])
+
+
+def _padded_width(c: int) -> int:
+    return 1 << max(c - 1, 0).bit_length()
+
+
+def scatter_rows(num_nodes: int, indices: list[Int[Array, " N"]], rows: list[Float[Array, "N C"]]) -> Float[Array, "G C"]:
+    """``sum_o zeros(G, C).at[indices[o]].add(rows[o])``: one grid buffer updated in place by
+    one scatter per stencil offset (indices in bounds, see :func:`compute_stencil`). Its
+    transpose is one gather per offset, which is cheap."""
+    c = rows[0].shape[-1]
+    cp = _padded_width(c)
+    out = jnp.zeros((num_nodes, cp), rows[0].dtype)
+    for index, block in zip(indices, rows):
+        out = out.at[index].add(jnp.pad(block, ((0, 0), (0, cp - c))), mode="promise_in_bounds")
+    return out[:, :c]
+
+
+def gather_rows(table: Float[Array, "G C"], index: Int[Array, " KN"], count: int) -> list[Float[Array, "N C"]]:
+    """``table[index]`` in one gather, split into ``count`` per-offset ``(N, C)`` blocks."""
+    c = table.shape[-1]
+    cp = _padded_width(c)
+    rows = jnp.pad(table, ((0, 0), (0, cp - c))).at[index].get(mode="promise_in_bounds")
+    return [block[:, :c] for block in jnp.split(rows, count)]

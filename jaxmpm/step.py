@@ -26,7 +26,17 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .model import Model, Params
-from .state import Grid, State, Stencil, compute_stencil, offset_terms, stencil_offsets
+from .state import (
+    Grid,
+    State,
+    Stencil,
+    compute_stencil,
+    gather_rows,
+    offset_terms,
+    scatter_rows,
+    stencil_index,
+    stencil_offsets,
+)
 
 __all__ = [
     "Stencil",
@@ -109,7 +119,8 @@ def p2g(
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
-    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``. One packed scatter per stencil offset.
+    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``, all stencil nodes in one packed scatter
+    (:func:`jaxmpm.state.scatter_rows`).
     With a CPIC ``contact``, nodes on the other side of a collider from the particle receive
     nothing (no mass, momentum or stress): that share goes to the collider.
 
@@ -118,11 +129,10 @@ def p2g(
     """
     dim = state.dim
     affine = affine_momentum(grid, state, tau, dt)
-    mv = state.mass[:, None] * state.v
-    packed = jnp.zeros((grid.num_nodes, 1 + dim), state.x.dtype)
     # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
     columns = [grid.dx * affine[:, :, d] for d in range(dim)]
-    base_momentum = mv - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
+    base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
+    indices, rows = [], []
     for o, offset in enumerate(stencil_offsets(dim)):
         index, weight, _ = offset_terms(grid, st, offset, with_dpos=False)
         if contact is not None:
@@ -131,8 +141,9 @@ def p2g(
         for d, od in enumerate(offset):
             if od:
                 momentum = momentum + od * columns[d]
-        values = weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1)
-        packed = packed.at[index].add(values, mode="drop")
+        indices.append(index)
+        rows.append(weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1))
+    packed = scatter_rows(grid.num_nodes, indices, rows)
     return packed[:, 0], packed[:, 1:]
 
 
@@ -155,9 +166,9 @@ def p2g_boundary(
     grid = model.grid
     dtype = state.x.dtype
     m_b = BOUNDARY_MASS_RATIO * jax.lax.stop_gradient(jnp.max(state.mass))
-    packed = jnp.zeros((grid.num_nodes, 1 + grid.dim), dtype)
     lo = jnp.asarray(grid.origin, dtype) + grid.dx
     hi = jnp.asarray(grid.origin, dtype) + (jnp.asarray(grid.shape, dtype) - 2.0) * grid.dx - 1e-4 * grid.dx
+    packed = jnp.zeros((grid.num_nodes, 1 + grid.dim), dtype)
     for boundary, collider in zip(model.boundary, model.colliders):
         if boundary is None:
             continue
@@ -165,10 +176,9 @@ def p2g_boundary(
         inside = jnp.all((xb >= lo) & (xb <= hi), axis=-1)
         st = compute_stencil(grid, jnp.clip(xb, lo, hi))
         mass = jnp.where(inside, m_b, 0.0)
-        for offset in stencil_offsets(grid.dim):
-            index, weight, _ = offset_terms(grid, st, offset)
-            values = (weight * mass)[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
-            packed = packed.at[index].add(values, mode="drop")
+        values = mass[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
+        terms = [offset_terms(grid, st, offset, with_dpos=False) for offset in stencil_offsets(grid.dim)]
+        packed = packed + scatter_rows(grid.num_nodes, [t[0] for t in terms], [t[1][:, None] * values for t in terms])
     return packed[:, 0], packed[:, 1:]
 
 
@@ -260,6 +270,10 @@ def g2p(
 ) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]]:
     """Gather particle velocities and affine matrices ``C = 4/dx^2 sum w v_i (x_i - x_p)^T``.
 
+    Moment form: with ``x_i - x_p = dx (o - fx)``, ``C = 4/dx (M - v fx^T)`` where
+    ``M = sum_o w_o v_o o^T``; no per-offset ``(N, D, D)`` outer product depends on the
+    positions. All stencil nodes are read in one gather (:func:`jaxmpm.state.gather_rows`).
+
     With CPIC ``ghost`` nodes, the nodes incompatible with collider ``c`` read the particle's
     own projected velocity ``P_c`` (:class:`jaxmpm.cpic.GhostNodes`) instead of the grid: the
     loop skips them and their share is added at the end from their total weight ``W_c`` and
@@ -267,16 +281,20 @@ def g2p(
     ``C += 4/dx^2 P_c M_c^T``.
     """
     n, dim = st.num_particles, st.dim
-    dtype = grid_v.dtype
-    v = jnp.zeros((n, dim), dtype)
-    C = jnp.zeros((n, dim, dim), dtype)
-    for o, offset in enumerate(stencil_offsets(dim)):
-        index, weight, dpos = offset_terms(grid, st, offset)
-        vi = grid_v[index]
+    offsets = stencil_offsets(dim)
+    values = gather_rows(grid_v, stencil_index(grid, st), len(offsets))
+    v = jnp.zeros((n, dim), grid_v.dtype)
+    moments = [jnp.zeros((n, dim), grid_v.dtype) for _ in range(dim)]  # moments[d] = sum w v_o o_d
+    for o, (offset, vo) in enumerate(zip(offsets, values)):
+        _, weight, _ = offset_terms(grid, st, offset, with_dpos=False)
         if ghost is not None:
             weight = jnp.where(ghost.contact.incompatible_at(o), 0.0, weight)
-        v = v + weight[:, None] * vi
-        C = C + (4.0 / grid.dx) * weight[:, None, None] * vi[:, :, None] * dpos[:, None, :]
+        wv = weight[:, None] * vo
+        v = v + wv
+        moments = [m + od * wv if od else m for m, od in zip(moments, offset)]
+    moments = jnp.stack(moments, axis=-1)
+    fx = jnp.stack(st.fx, axis=-1)
+    C = (4.0 / grid.dx) * (moments - v[:, :, None] * fx[:, None, :])
     for c in range(0 if ghost is None else len(ghost.kinds)):
         P = ghost.projected(c, grid.dx)
         v = v + ghost.weight[c][:, None] * P

@@ -122,3 +122,48 @@ def test_forward_and_reverse_mode_agree_for_velocity_and_gravity():
     for a, b in zip(rev, fwd):
         assert np.all(np.isfinite(a))
         np.testing.assert_allclose(a, b, rtol=1e-8)
+
+
+def _saved_residuals(fn, *args, capsys) -> list[tuple[tuple[int, ...], str]]:
+    """``(shape, origin)`` of each residual reverse mode keeps for ``fn(*args)`` (JAX's own listing)."""
+    import re
+
+    from jax.ad_checkpoint import print_saved_residuals
+
+    capsys.readouterr()
+    print_saved_residuals(fn, *args)
+    lines = capsys.readouterr().out.splitlines()
+    pattern = re.compile(r"^\w+\[([\d,]*)\] (.*)$")
+    found = [(tuple(int(n) for n in m.group(1).split(",") if n), m.group(2)) for m in map(pattern.match, lines) if m]
+    assert len(found) == len(lines) and found, lines
+    return found
+
+
+@pytest.mark.parametrize("collider", [None, "box"])
+def test_checkpointed_rollout_saves_particle_state_per_step_never_grid_arrays(dim, collider, capsys):
+    """Memory guard: under ``checkpoint="step"``/``"nested"`` reverse mode keeps, per substep,
+    one particle state (x, v, C, F, aux, tags: O(N D^2)) and nothing grid sized (constants such
+    as a collider's precomputed field are kept once, not per step). Without checkpointing it
+    keeps grid arrays per step, so the guard can fail."""
+    spec = block_spec(dim, {"model": "elastic", "E": 3e4, "nu": 0.3}, frames=3, substeps=4)
+    if collider == "box":  # a CPIC collider right under the block: tags and contact terms in the step
+        spec["colliders"] = [{"type": "box", "name": "box", "lo": [0.3] + [0.2] * (dim - 1), "hi": [0.7] + [0.29] * (dim - 1)}]
+    scene = load_scene(spec)
+    model = scene.model
+    n, nodes, steps = model.num_particles, model.grid.num_nodes, (model.frames - 1) * model.substeps
+    assert nodes > 4 * n  # grid-sized and particle-sized arrays are told apart by size
+
+    def loss(checkpoint):
+        return lambda p: jnp.sum(simulate(model, p, checkpoint=checkpoint).x[-1])
+
+    def per_step(checkpoint):
+        saved = _saved_residuals(loss(checkpoint), scene.params, capsys=capsys)
+        return [shape for shape, origin in saved if "from a constant" not in origin and "argument" not in origin]
+
+    per_step_state = n * (2 * dim + 2 * dim * dim + 1 + len(model.colliders))  # x, v, C, F, aux, tags
+    for policy in ("step", "nested"):
+        shapes = per_step(policy)
+        assert all(nodes not in s for s in shapes), (policy, shapes)
+        total = sum(int(np.prod(s)) for s in shapes)
+        assert total <= 1.5 * steps * per_step_state, (policy, total, steps * per_step_state)
+    assert any(nodes in s for s in per_step(None))
