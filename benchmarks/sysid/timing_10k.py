@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import time
 
@@ -49,13 +50,21 @@ def main() -> None:
     out = {"particles": scene.model.num_particles, "grid": list(scene.model.grid.shape), "dx": args.dx,
            "substeps": scene.model.substeps, "frames": 16}
 
+    def partial():  # a partial line after every measurement (a shared machine may not finish)
+        out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        out["load_average"] = os.getloadavg()[0]
+        print("TIMING-PARTIAL " + json.dumps(out), flush=True)
+
     run = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None).x)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     x = np.asarray(run(scene.params))
     out["forward_compile_and_run_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    out["forward_compile_and_run_cpu_s"] = time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
     x = np.asarray(run(scene.params))
     out["forward_s"] = time.perf_counter() - t0
+    out["forward_cpu_s"] = time.process_time() - c0
+    partial()
     times = np.arange(16) / 24.0
     names = ["mu", "kappa"]
     y = {n: to_unconstrained(n, jnp.asarray(INITIAL_GUESS["newtonian"][n] * 3.0, jnp.float32)) for n in names}
@@ -67,12 +76,15 @@ def main() -> None:
             return objective.residuals(apply_unconstrained(scene.model, scene.params, names, yy))
 
         rj, flat, _ = residuals_and_jacobian(residuals, y)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(rj(flat))
         out[f"{label}_rj_compile_and_run_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        out[f"{label}_rj_compile_and_run_cpu_s"] = time.process_time() - c0
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(rj(flat))
         out[f"{label}_rj_s"] = time.perf_counter() - t0
+        out[f"{label}_rj_cpu_s"] = time.process_time() - c0
+        partial()
 
     tracks = Observation(times=times, positions=x, point_ids="particles")
     time_rj(tracks, None, "tracks")
@@ -90,8 +102,6 @@ def main() -> None:
         out["fit_converged"] = result.converged
         out["fit_errors"] = {n: abs(float(np.log10(result.values[n] / truth[n]))) for n in names}
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    import os
-
     out["load_average"] = os.getloadavg()[0]
     print("TIMING-JSON " + json.dumps(out))
 
