@@ -359,7 +359,7 @@ def summarise(rows: list[dict]) -> str:
         c = r["case"]
         groups.setdefault((c["supervision"], c["mode"], c["material"], c["collider"]), []).append(r)
     head = ["supervision", "mode", "material", "collider", "n", "conv."] + [PARAM_HEADERS[p] for p in PARAM_COLUMNS] + \
-        ["|Δv| m/s", "wall s / id", "CPU s / id", "peak MB"]
+        ["‖Δv‖ m/s", "wall s / id", "CPU s / id", "peak MB"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     order = {m: i for i, m in enumerate(MATERIALS)}
     for key in sorted(groups, key=lambda k: (SUPERVISION.index(k[0]), MODES.index(k[1]), order[k[2]], k[3])):
