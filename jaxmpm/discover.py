@@ -1277,7 +1277,8 @@ def discover(
         std = {n: stds[n] for n in parameters}
     gain = 1.0 - current_err / max(base_err, 1e-300) if discrepancy else 0.0
     if discrepancy:
-        verdict = (f"The base model misses {_describe(selected)}: adding it removes {gain:.0%} of the held-out error "
+        them = "it" if len(selected) == 1 else "them"
+        verdict = (f"The base model misses {_describe(selected)}: adding {them} removes {gain:.0%} of the held-out error "
                    f"({base_err:.3g} -> {current_err:.3g}).")
     else:
         why = verdict_notes[0] if verdict_notes else (

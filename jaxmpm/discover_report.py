@@ -608,7 +608,8 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
     if data_note:
         L += [data_note, ""]
     seqs = ", ".join(f"`{n}`" for n in s["sequences"])
-    L += [f"* Sequences: {seqs}. Fitted base parameters: {', '.join('`' + n + '`' for n in s['names'])}.",
+    fitted = ", ".join("`" + n + "`" for n in s["names"]) or "none (the base model's parameters are all known)"
+    L += [f"* Sequences: {seqs}. Fitted base parameters: {fitted}.",
           f"* Held out: {s['heldout_groups']} of {s['heldout_groups'] + s['train_groups']} frames / time bins "
           + (f"(sequences {', '.join(s['holdout_sequences'])})" if s["holdout_sequences"] else f"(the last {s['holdout']:.0%} of each sequence's observed times: a forecast)")
           + "; every fit uses only the training part.",
@@ -618,9 +619,13 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
           f"* An extension is kept when its held-out gain is at least {s['min_gain']:.0%}, a likelihood-ratio test on the "
           f"training frames (n = {s['train_groups']}; boundary mixture ½χ²₀+½χ²₁ for one bounded parameter) gives p < {s['alpha']}, "
           "and the held-out improvement exceeds the numerical error of the dt/2 check.", ""]
-    L += ["## The base model", "", "| parameter | fitted value |", "|---|---|"]
-    for k, v in d.base_values.items():
-        L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |")
+    L += ["## The base model", ""]
+    if d.base_values:
+        L += ["| parameter | fitted value |", "|---|---|"]
+        for k, v in d.base_values.items():
+            L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |")
+    else:
+        L.append("No parameter fitted: the base model is run as given.")
     L.append("")
     L += ["## What the base model gets wrong", ""]
     if "errors_over_time.png" in plots:
