@@ -116,7 +116,6 @@ def test_moving_collider_is_found():
     assert abs(float(result.parameters["moving_collider.floor"][1]) - 0.3) < 0.03
 
 
-@pytest.mark.slow
 def test_gravity_error_is_found_from_silhouettes():
     from jaxmpm.discover import lifted_layers
     from jaxmpm.render import look_at, render_views
