@@ -2,7 +2,8 @@
 
     python benchmarks/bench_colliders.py                 # everything (minutes on 2 cores)
     python benchmarks/bench_colliders.py --accuracy      # penetration depth and leaks vs dx
-    python benchmarks/bench_colliders.py --cost          # CPU time per step at ~25k particles
+    python benchmarks/bench_colliders.py --cost          # CPU time per step at 25k particles
+    python benchmarks/bench_colliders.py --cost --breakdown  # ... and where CPIC's time goes
     python benchmarks/bench_colliders.py --images        # docs/img/colliders_*.png
 
 Modes (``collision`` scene key): ``cpic`` (particle-wise CPIC, the default), ``grid``
@@ -13,6 +14,7 @@ rigid boundary particles, RP-DiffMPM). Results are recorded in docs/colliders.md
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -53,6 +55,13 @@ def bunny_drop(dx: float, collision: str, frames: int = 10) -> dict:
     }
 
 
+def plate_height(dx: float, on_node_row: bool = False) -> float:
+    """Height of the thin plate near y = 0.405: half-way between two node rows (the hard case for
+    a grid-level condition, which then sees no node on or inside the plate) or on a node row."""
+    k = math.floor(0.405 / dx + 1e-9)
+    return (k if on_node_row else k + 0.5) * dx
+
+
 def thin_plate(dx: float, collision: str, y0: float = 0.405) -> dict:
     """Fluid, sand and an elastic block dropped at 2 m/s on a full-width segment of zero thickness (2D)."""
     bodies = [
@@ -66,11 +75,30 @@ def thin_plate(dx: float, collision: str, y0: float = 0.405) -> dict:
     }
 
 
-def cost_scene(collision: str | None, dx: float = 1 / 48) -> dict:
-    """~22-25k particles of fluid over the bunny (3D), for timing."""
+COST_PARTICLES = 25_000
+
+
+def cost_points(dx: float = 1 / 48, n: int = COST_PARTICLES) -> np.ndarray:
+    """``n`` fluid particles resting on the bunny's top: the lattice (8 per cell) of a box around
+    the bunny's upper half, less every point within half a particle spacing of the bunny or
+    inside it, keeping the ``n`` highest points (so the fluid conforms to the bunny's back, ears
+    and head and about a third of the particles are within 1.5 dx of its surface)."""
+    spec = bunny_drop(dx, "cpic")
+    bunny = load_scene(spec).model.colliders[1]
+    h = dx / 2
+    axes = [np.arange(lo + h / 2, hi, h) for lo, hi in zip((0.25, 0.25, 0.3), (0.75, 0.66, 0.7))]
+    x = np.stack([a.reshape(-1) for a in np.meshgrid(*axes, indexing="ij")], axis=-1)
+    sd = np.concatenate([np.asarray(bunny.signed_distance(jnp.asarray(x[s : s + 8192]), jnp.asarray(0.0))[0])
+                         for s in range(0, len(x), 8192)])
+    x = x[sd > 0.5 * h]
+    return x[np.argsort(-x[:, 1], kind="stable")[:n]]
+
+
+def cost_scene(collision: str | None, points: Path, dx: float = 1 / 48) -> dict:
+    """25k particles of fluid resting on the bunny (3D), for timing; ``collision=None``: the same
+    particles with only the floor (the collider-free reference)."""
     spec = bunny_drop(dx, collision or "cpic")
-    spec["bodies"] = [{"shape": "box", "lo": [0.35, 0.45, 0.35], "hi": [0.66, 0.76, 0.66], "material": FLUID,
-                       "velocity": [0.0, -1.0, 0.0]}]
+    spec["bodies"] = [{"shape": "points", "path": str(points), "material": FLUID, "velocity": [0.0, -1.0, 0.0]}]
     if collision is None:
         spec["colliders"] = spec["colliders"][:1]
     return spec
@@ -115,14 +143,18 @@ def accuracy(quick: bool = False) -> list[dict]:
                        leaked=int(np.sum(np.nanmax(depth, axis=0) > 0.5 * dx)), nan=nan, secs=secs)
             rows.append(row)
             _print_row(row)
-    for dx in (0.02, 0.01) if quick else (0.02, 0.01, 0.005):
-        for mode in MODES:
-            _, _, x, nan, secs = rollout(thin_plate(dx, mode))
-            depth = 0.405 - x[..., 1]  # below the plate = through it
-            row = dict(scene="thin plate 2D", dx=dx, mode=mode, n=x.shape[1], depth=np.nanmax(depth),
-                       leaked=int(np.sum(np.nanmax(depth, axis=0) > 0.5 * dx)), nan=nan, secs=secs)
-            rows.append(row)
-            _print_row(row)
+    for on_row in (False, True):
+        for dx in (0.02, 0.01) if quick else (0.02, 0.01, 0.005):
+            y0 = plate_height(dx, on_row)
+            for mode in MODES:
+                _, _, x, nan, secs = rollout(thin_plate(dx, mode, y0))
+                depth = y0 - x[..., 1]  # below the plate = through it
+                where = "on a node row" if on_row else "between node rows"
+                row = dict(scene=f"thin plate 2D, y = {y0:.4f} ({where})", dx=dx, mode=mode, n=x.shape[1],
+                           depth=np.nanmax(depth), leaked=int(np.sum(np.nanmax(depth, axis=0) > 0.5 * dx)),
+                           nan=nan, secs=secs)
+                rows.append(row)
+                _print_row(row)
     return rows
 
 
@@ -134,35 +166,88 @@ def _print_row(r):
 # --------------------------------------------------------------------------- cost
 
 
-def cost(steps: int = 20, reps: int = 5) -> dict:
+def _timed(fn, s0, steps: int, reps: int) -> float:
+    """CPU (process) time per step in ms: best of ``reps`` calls of ``fn`` (a jitted scan)."""
+    jax.block_until_ready(fn(s0))
+    best = np.inf
+    for _ in range(reps):
+        t = time.process_time()
+        jax.block_until_ready(fn(s0))
+        best = min(best, (time.process_time() - t) / steps * 1e3)
+    return best
+
+
+def _scan(step_fn, m, p, steps):
+    return jax.jit(lambda s: jax.lax.scan(lambda c, _: (step_fn(m, p, c), None), s, None, length=steps)[0])
+
+
+def cost(steps: int = 20, reps: int = 5, breakdown: bool = False) -> dict:
     """CPU time per step (process time, best of ``reps`` scans of ``steps`` steps)."""
-    print("\n### Cost per step (CPU time; the block sits on the bunny so contacts are active)\n")
+    import tempfile
+
+    print("\n### Cost per step (CPU time; 25k fluid particles resting on the bunny, contacts active)\n")
     print("| mode | particles | grid nodes | ms / step | relative to no collider |")
     print("|---|---|---|---|---|")
     out = {}
-    for mode in (None,) + MODES:
-        scene = load_scene(cost_scene(mode))
-        m, p = scene.model, scene.params
-        s0 = initial_state(m, p)
-        # lower the block onto the bunny's top: most particles near the collider have contacts
-        s0 = _with_x(s0, s0.x - jnp.asarray([0.0, 0.2, 0.0], s0.x.dtype))
-        run = jax.jit(lambda s: jax.lax.scan(lambda c, _: (step(m, p, c), None), s, None, length=steps)[0])
-        jax.block_until_ready(run(s0))
-        best = np.inf
-        for _ in range(reps):
-            t = time.process_time()
-            jax.block_until_ready(run(s0))
-            best = min(best, (time.process_time() - t) / steps * 1e3)
-        out[mode] = best
-        ratio = best / out[None]
-        print(f"| {mode or 'no collider'} | {m.num_particles} | {m.grid.num_nodes} | {best:.2f} | {ratio:.2f} |", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        points = Path(tmp) / "fluid.npy"
+        np.save(points, cost_points())
+        for mode in (None,) + MODES:
+            scene = load_scene(cost_scene(mode, points))
+            m, p = scene.model, scene.params
+            out[mode] = _timed(_scan(step, m, p, steps), initial_state(m, p), steps, reps)
+            ratio = out[mode] / out[None]
+            print(f"| {mode or 'no collider'} | {m.num_particles} | {m.grid.num_nodes} | {out[mode]:.2f} | "
+                  f"{ratio:.2f} |", flush=True)
+        if breakdown:
+            _breakdown(load_scene(cost_scene("cpic", points)), steps, reps, out[None])
     return out
 
 
-def _with_x(state, x):
+def _breakdown(scene, steps: int, reps: int, reference: float) -> None:
+    """Where CPIC's extra time goes: the step with its CPIC stages switched on one at a time.
+
+    Mirrors :func:`jaxmpm.step.step` (stage functions of ``jaxmpm.step``); the partial variants
+    are for timing only (they are not physical).
+    """
+    import importlib
+
     import equinox as eqx
 
-    return eqx.tree_at(lambda s: s.x, state, x)
+    S = importlib.import_module("jaxmpm.step")  # the module (``jaxmpm.step`` is the function)
+
+    def variant(gather: bool, mask: bool, ghosts: bool, correct: bool):
+        def one(model, params, state):
+            dt, grid = model.dt, model.grid
+            st = S.compute_stencil(grid, state.x)
+            contact = S.gather_contact(model, st, state) if gather else None
+            F, aux = S.material_update(model, params, state)
+            tau = S.kirchhoff_stress(model, params, F, state.C, aux)
+            mass, momentum = S.p2g(grid, st, state, tau, dt, contact if mask else None)
+            grid_v = S.grid_update(model, params, mass, momentum, state.time)
+            ghost = S.ghost_nodes(model, params, state, st, tau, contact) if ghosts else None
+            v, C = S.g2p(grid, st, grid_v, ghost)
+            x = S.advect(grid, state.x, v, dt, S.penetration_correction(model, contact, v) if correct else None)
+            tag = contact.tag if gather else state.tag
+            return eqx.tree_at(lambda s: (s.x, s.v, s.C, s.F, s.aux, s.tag, s.time), state,
+                               (x, v, C, F, aux, tag, state.time + dt))
+
+        return one
+
+    m, p = scene.model, scene.params
+    s0 = initial_state(m, p)
+    print("\n#### Where CPIC's time goes (stages switched on one at a time; same particles)\n")
+    print("| step | ms / step | relative to no collider |")
+    print("|---|---|---|")
+    for label, flags in (
+        ("CPIC stages off (floor only)", (False, False, False, False)),
+        ("+ gather (stencil sides, signed distance, normal, tags)", (True, False, False, False)),
+        ("+ compatibility-masked P2G", (True, True, False, False)),
+        ("+ ghost nodes in G2P (Coulomb projection)", (True, True, True, False)),
+        ("+ penetration correction (= the CPIC step)", (True, True, True, True)),
+    ):
+        ms = _timed(_scan(variant(*flags), m, p, steps), s0, steps, reps)
+        print(f"| {label} | {ms:.2f} | {ms / reference:.2f} |", flush=True)
 
 
 # --------------------------------------------------------------------------- pictures
@@ -213,6 +298,7 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy", action="store_true")
     parser.add_argument("--cost", action="store_true")
     parser.add_argument("--images", action="store_true")
+    parser.add_argument("--breakdown", action="store_true", help="with --cost: time CPIC's stages one by one")
     parser.add_argument("--quick", action="store_true", help="fewer resolutions")
     args = parser.parse_args(argv)
     every = not (args.accuracy or args.cost or args.images)
@@ -220,7 +306,7 @@ def main(argv=None) -> int:
     if every or args.accuracy:
         accuracy(args.quick)
     if every or args.cost:
-        cost()
+        cost(breakdown=args.breakdown)
     if every or args.images:
         images()
     return 0
