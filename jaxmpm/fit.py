@@ -452,6 +452,40 @@ def residuals_and_jacobian(residuals: Callable, y0: dict):
     return rj, flat0, unravel
 
 
+#: Step lengths tried along the Gauss–Newton direction when the trust region has collapsed.
+ESCAPE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+#: At most this many such escapes per stage.
+MAX_ESCAPES = 4
+
+
+def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
+    """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
+
+    A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
+    the trust region can collapse far from a minimum: the local slope it sees disagrees with
+    the trend. Here the undamped Gauss–Newton step ``delta`` is computed from ``(r, J)`` at
+    ``flat`` and tried at the lengths ``ESCAPE_STEPS``.
+
+    Returns ``(new_flat, new_loss)`` for the first length that lowers the loss, else
+    ``None, stationary`` where ``stationary`` says whether the Gauss–Newton step is within the
+    step tolerance ``rtol (1 + |y|)`` (a genuine stationary point at this precision).
+    """
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    y = np.asarray(flat, np.float64)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return None, False
+    delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+    stationary = bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+    if stationary:
+        return None, True
+    for alpha in ESCAPE_STEPS:
+        trial = jnp.asarray(y + alpha * delta, flat.dtype)
+        f_t = float(loss_of(trial))
+        if np.isfinite(f_t) and f_t < f:
+            return (trial, f_t), False
+    return None, False
+
+
 def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
     """Levenberg–Marquardt with Marquardt's diagonal scaling and Nielsen's damping update.
 
@@ -460,7 +494,11 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     covariance. Converged when an accepted step changes no parameter by more than
     ``rtol (1 + |y|)`` (optimisation units: decades, degrees, m/s) and the loss by no more
     than ``atol + rtol f``, or the loss has fallen by ten orders of magnitude; or, at the
-    loss's numerical floor, after ``MAX_REJECTED_STEPS`` consecutive rejected steps.
+    loss's numerical floor, after ``MAX_REJECTED_STEPS`` consecutive rejected steps when the
+    undamped Gauss–Newton step is within the step tolerance. When it is not, the trust region
+    collapsed on a rough loss: :func:`_gauss_newton_escape` tries that step (line search) and
+    the solver restarts from the better point (at most ``MAX_ESCAPES`` times); failing that the
+    stage reports that it stalled, never that it converged.
     """
     rj, flat, unravel = residuals_and_jacobian(residuals, y0)
     r, J = (np.asarray(a, np.float64) for a in rj(flat))
@@ -471,7 +509,8 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     losses = [f]
     lam, nu = None, 2.0
     converged = stalled = unhealthy = False
-    rejected = 0
+    rejected = escapes = 0
+    stationary = False
     iterations = 0
     for iterations in range(1, max_steps + 1):
         g = J.T @ r
@@ -513,12 +552,27 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
             # At the loss's numerical floor no trial step can decrease it, so the damping
             # grows without the tolerance test ever passing: a stationary point too.
             if rejected >= MAX_REJECTED_STEPS:
+                loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
+                found, stationary = _gauss_newton_escape(loss_of, rj, jnp.asarray(y, flat.dtype), f, rtol)
+                if found is not None and escapes < MAX_ESCAPES:
+                    escapes += 1
+                    y = np.asarray(found[0], np.float64)
+                    r, J = (np.asarray(a, np.float64) for a in rj(found[0]))
+                    f = float(r @ r)
+                    losses.append(f)
+                    lam, nu, rejected = None, 2.0, 0
+                    continue
                 stalled = True
-                converged = not unhealthy
+                converged = stationary and not unhealthy
                 break
-    if stalled and not unhealthy:
+    if stalled and not unhealthy and stationary:
         message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
-                   "lower the loss further: a stationary point at this precision)")
+                   "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
+                   "at this precision)")
+    elif stalled and not unhealthy:
+        message = (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
+                   "still large but no trial step lowers the loss (a rough loss at this precision; try float64, "
+                   "another starting point or method='adam')")
     elif stalled:
         message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
     elif converged:
@@ -552,22 +606,43 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
 
     y = y0
     losses = [float(jnp.sum(r0**2))]
-    converged, stalled, iterations = False, False, 0
+    converged, stalled, stationary, iterations = False, False, False, 0
+    escape_tools, escapes, fresh = None, 0, True
     for iterations in range(1, max_steps + 1):
         y, state, done, result, loss = advance(y, state)
-        # step 1 only evaluates the initial guess; later accepted steps move to a lower loss
-        accepted = iterations > 1 and int(state.num_steps_since_acceptance) == 0
+        # a fresh state's first step only evaluates its starting point; later accepted steps
+        # move to a lower loss
+        accepted = not fresh and int(state.num_steps_since_acceptance) == 0
+        fresh = False
         if accepted:
             losses.append(float(loss))
         if progress is not None:
             progress(offset + iterations, losses[-1])
-        if bool(done):
-            converged = result == optx.RESULTS.successful
+        succeeded = bool(done) and result == optx.RESULTS.successful
+        if bool(done) and not succeeded:
+            converged = False
             break
-        # At the loss's numerical floor no trial step can decrease it, so the trust region
-        # shrinks without the tolerance test ever passing: that is a stationary point too.
-        if int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
-            converged = stalled = True
+        # optimistix's Cauchy test (small step AND small loss change) also passes when its
+        # trust region has collapsed on a rough loss far from a minimum; and at the loss's
+        # numerical floor the region shrinks without the test ever passing. Both end here:
+        # a stationary point only if the undamped Gauss-Newton step is within tolerance.
+        if succeeded or int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
+            if escape_tools is None:
+                rj, _, unravel = residuals_and_jacobian(residuals, y)
+                loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
+                escape_tools = (rj, unravel, loss_of)
+            rj, unravel, loss_of = escape_tools
+            flat = jax.flatten_util.ravel_pytree(y)[0]
+            found, stationary = _gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol)
+            if found is not None and escapes < MAX_ESCAPES:
+                escapes += 1
+                y = unravel(found[0])
+                losses.append(found[1])
+                state = solver.init(fn, y, None, options, f_struct, None, tags)
+                fresh = True
+                continue
+            stalled = not succeeded
+            converged = stationary
             break
     # optimistix returns the last *accepted* point as y (trial points live in the state).
     unhealthy = False
@@ -576,13 +651,22 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
         if unhealthy:
             converged = False
-    if stalled and not unhealthy:
+    if stalled and not unhealthy and stationary:
         message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
-                   "lower the loss further: a stationary point at this precision)")
+                   "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
+                   "at this precision)")
+    elif stalled and not unhealthy:
+        message = (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
+                   "still large but no trial step lowers the loss (a rough loss at this precision; try float64, "
+                   "another starting point or method='adam')")
     elif stalled:
         message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
     elif converged:
         message = f"converged in {iterations} iterations"
+    elif bool(done) and stationary is False and iterations < max_steps and result == optx.RESULTS.successful:
+        message = (f"stalled after {iterations} iterations away from a stationary point: the steps became tiny "
+                   "while the Gauss-Newton step is still large and does not lower the loss (a rough loss at this "
+                   "precision; try float64, another starting point or method='adam')")
     else:
         message = f"did not converge within {max_steps} iterations"
     return _StageOutcome(y, losses, iterations, converged, message, unhealthy)

@@ -140,3 +140,31 @@ def test_contact_redetected_with_the_fitted_velocity():
     # (Chamfer distances between lattices are nearly periodic in a shift of one particle
     # spacing, so a one-frame window pins the velocity only to ~0.2 m/s; from 2.1 m/s off)
     np.testing.assert_allclose(result.values["velocity"], [0.5, -2.0], atol=0.25)
+
+
+def test_gauss_newton_escape_moves_off_a_collapsed_trust_region_and_recognises_a_minimum():
+    """What LM does after its trust region collapsed: from a point far from the minimum of a
+    residual whose loss is rough on small scales (a staircase the derivative does not see), the
+    undamped Gauss-Newton step lowers the loss; at the minimum it reports a stationary point."""
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from jaxmpm.fit import _gauss_newton_escape, residuals_and_jacobian
+
+    def residuals(y):
+        t = y["theta"]
+        stairs = jax.lax.stop_gradient(1e-3 * jnp.round(jnp.sin(3e3 * t)))  # invisible to the Jacobian
+        return jnp.stack([t - 3.0 + stairs, 0.5 * (t - 3.0)])
+
+    for start, expect_move in ((0.0, True), (3.0, False)):
+        y = {"theta": jnp.asarray(start, jnp.float64)}
+        rj, _, unravel = residuals_and_jacobian(residuals, y)
+        flat = jax.flatten_util.ravel_pytree(y)[0]
+        loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
+        f = float(loss_of(flat))
+        found, stationary = _gauss_newton_escape(loss_of, rj, flat, f, 1e-5)
+        if expect_move:
+            assert found is not None and found[1] < 1e-2 * f and not stationary
+            assert abs(float(found[0][0]) - 3.0) < 0.01
+        else:
+            assert found is None and stationary
