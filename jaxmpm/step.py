@@ -119,8 +119,8 @@ def p2g(
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
-    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``, all stencil nodes in one packed scatter
-    (:func:`jaxmpm.state.scatter_rows`).
+    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``: one packed ``[mass, momentum]`` scatter per
+    stencil offset into one grid buffer (:func:`jaxmpm.state.scatter_rows`).
     With a CPIC ``contact``, nodes on the other side of a collider from the particle receive
     nothing (no mass, momentum or stress): that share goes to the collider.
 
