@@ -467,8 +467,9 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     ``flat`` and tried at the lengths ``ESCAPE_STEPS``.
 
     Returns ``(new_flat, new_loss)`` for the first length that lowers the loss, else
-    ``None, stationary`` where ``stationary`` says whether the Gauss–Newton step is within the
-    step tolerance ``rtol (1 + |y|)`` (a genuine stationary point at this precision).
+    ``None, stationary`` where ``stationary`` says whether every component of the Gauss–Newton
+    step is within ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees,
+    m/s): a genuine stationary point at this precision.
     """
     r, J = (np.asarray(a, np.float64) for a in rj(flat))
     y = np.asarray(flat, np.float64)
@@ -495,9 +496,9 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     ``rtol (1 + |y|)`` (optimisation units: decades, degrees, m/s) and the loss by no more
     than ``atol + rtol f``, or the loss has fallen by ten orders of magnitude; or, at the
     loss's numerical floor, after ``MAX_REJECTED_STEPS`` consecutive rejected steps when the
-    undamped Gauss–Newton step is within the step tolerance. When it is not, the trust region
-    collapsed on a rough loss: :func:`_gauss_newton_escape` tries that step (line search) and
-    the solver restarts from the better point (at most ``MAX_ESCAPES`` times); failing that the
+    undamped Gauss–Newton step is within ``max(rtol, 1e-3) (1 + |y|)``. When it is not, the
+    trust region collapsed on a rough loss: :func:`_gauss_newton_escape` tries that step (line
+    search) and the solver restarts from the better point (at most ``MAX_ESCAPES`` times); failing that the
     stage reports that it stalled, never that it converged.
     """
     rj, flat, unravel = residuals_and_jacobian(residuals, y0)
@@ -511,6 +512,7 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     converged = stalled = unhealthy = False
     rejected = escapes = 0
     stationary = False
+    loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if a stall needs it
     iterations = 0
     for iterations in range(1, max_steps + 1):
         g = J.T @ r
@@ -552,7 +554,6 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
             # At the loss's numerical floor no trial step can decrease it, so the damping
             # grows without the tolerance test ever passing: a stationary point too.
             if rejected >= MAX_REJECTED_STEPS:
-                loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
                 found, stationary = _gauss_newton_escape(loss_of, rj, jnp.asarray(y, flat.dtype), f, rtol)
                 if found is not None and escapes < MAX_ESCAPES:
                     escapes += 1
@@ -560,7 +561,7 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
                     r, J = (np.asarray(a, np.float64) for a in rj(found[0]))
                     f = float(r @ r)
                     losses.append(f)
-                    lam, nu, rejected = None, 2.0, 0
+                    lam, nu, rejected, unhealthy = None, 2.0, 0, False
                     continue
                 stalled = True
                 converged = stationary and not unhealthy
