@@ -293,15 +293,11 @@ class _Groups:
 
 
 def _track_observable(model, obs: Observation, dtype):
+    from .losses import check_tracks
+
     pos = np.asarray(obs.positions, float)
     T, N, D = pos.shape
-    if D != model.dim:
-        raise ObservationError(f"observed positions are {D}-D but the scene is {model.dim}-D")
-    by_id = obs.point_ids == "particles"
-    if by_id and N != model.num_particles:
-        raise ObservationError(
-            f"observation has point_ids='particles' with {N} points but the scene has {model.num_particles} particles"
-        )
+    by_id = check_tracks(model, pos, obs.point_ids)
     valid = ~np.any(np.isnan(pos), axis=-1)
     count = valid.sum(axis=1) * (D if by_id else 1)
     if by_id:

@@ -487,6 +487,24 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     return None, False
 
 
+def _lm_message(how: str, iterations: int, max_steps: int) -> str:
+    """The stage message of both LM paths for how it stopped: ``"converged"`` (tolerance
+    test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"rough"``
+    (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable) or
+    ``"cap"`` (iteration limit)."""
+    return {
+        "converged": f"converged in {iterations} iterations",
+        "stationary": (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
+                       "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
+                       "at this precision)"),
+        "rough": (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
+                  "still large but neither the trust region nor a line search along it lowers the loss (a rough "
+                  "loss at this precision; try float64, another starting point or method='adam')"),
+        "unstable": f"stalled after {iterations} iterations: the trial steps made the simulation unstable",
+        "cap": f"did not converge within {max_steps} iterations",
+    }[how]
+
+
 def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
     """Levenberg–Marquardt with Marquardt's diagonal scaling and Nielsen's damping update.
 
@@ -566,20 +584,11 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
                 stalled = True
                 converged = stationary and not unhealthy
                 break
-    if stalled and not unhealthy and stationary:
-        message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
-                   "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
-                   "at this precision)")
-    elif stalled and not unhealthy:
-        message = (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
-                   "still large but no trial step lowers the loss (a rough loss at this precision; try float64, "
-                   "another starting point or method='adam')")
-    elif stalled:
-        message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
-    elif converged:
-        message = f"converged in {iterations} iterations"
+    if stalled:
+        how = "unstable" if unhealthy else "stationary" if stationary else "rough"
     else:
-        message = f"did not converge within {max_steps} iterations"
+        how = "converged" if converged else "cap"
+    message = _lm_message(how, iterations, max_steps)
     y_out = unravel(jnp.asarray(y, flat.dtype))
     # only a stall against unstable trial points calls for a smaller dt: single rejected
     # unstable trials are the trust region doing its job
@@ -609,6 +618,7 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
     losses = [float(jnp.sum(r0**2))]
     converged, stalled, stationary, iterations = False, False, False, 0
     escape_tools, escapes, fresh = None, 0, True
+    succeeded = False
     for iterations in range(1, max_steps + 1):
         y, state, done, result, loss = advance(y, state)
         # a fresh state's first step only evaluates its starting point; later accepted steps
@@ -652,25 +662,13 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
         if unhealthy:
             converged = False
-    if stalled and not unhealthy and stationary:
-        message = (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
-                   "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
-                   "at this precision)")
-    elif stalled and not unhealthy:
-        message = (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
-                   "still large but no trial step lowers the loss (a rough loss at this precision; try float64, "
-                   "another starting point or method='adam')")
-    elif stalled:
-        message = f"stalled after {iterations} iterations: the trial steps made the simulation unstable"
-    elif converged:
-        message = f"converged in {iterations} iterations"
-    elif bool(done) and stationary is False and iterations < max_steps and result == optx.RESULTS.successful:
-        message = (f"stalled after {iterations} iterations away from a stationary point: the steps became tiny "
-                   "while the Gauss-Newton step is still large and does not lower the loss (a rough loss at this "
-                   "precision; try float64, another starting point or method='adam')")
+    if stalled:
+        how = "unstable" if unhealthy else "stationary" if stationary else "rough"
+    elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
+        how = "converged" if converged else "rough"
     else:
-        message = f"did not converge within {max_steps} iterations"
-    return _StageOutcome(y, losses, iterations, converged, message, unhealthy)
+        how = "cap"
+    return _StageOutcome(y, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy)
 
 
 def _run_bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:

@@ -275,16 +275,24 @@ class _Term:
     info: dict = field(default_factory=dict)
 
 
+def check_tracks(model: Model, positions: np.ndarray, point_ids) -> bool:
+    """Raise :class:`ObservationError` unless tracked ``positions`` ``(T, N, D)`` fit the
+    scene; returns whether the points are the particles themselves (matched by id)."""
+    _, n, d = positions.shape
+    if d != model.dim:
+        raise ObservationError(f"observed positions are {d}-D but the scene is {model.dim}-D")
+    by_id = point_ids == "particles"
+    if by_id and n != model.num_particles:
+        raise ObservationError(
+            f"observation has point_ids='particles' with {n} points but the scene has {model.num_particles} particles"
+        )
+    return by_id
+
+
 def _track_term(model: Model, obs: Observation, sel: np.ndarray, frames: int, weight: float) -> _Term:
     positions = np.asarray(obs.positions, float)[sel]
     T, N, D = positions.shape
-    if D != model.dim:
-        raise ObservationError(f"observed positions are {D}-D but the scene is {model.dim}-D")
-    by_id = obs.point_ids == "particles"
-    if by_id and N != model.num_particles:
-        raise ObservationError(
-            f"observation has point_ids='particles' with {N} points but the scene has {model.num_particles} particles"
-        )
+    by_id = check_tracks(model, positions, obs.point_ids)
     valid = ~np.any(np.isnan(positions), axis=-1)
     if not valid.any():
         raise ObservationError("the observed tracks are all NaN in the fitted time window")
