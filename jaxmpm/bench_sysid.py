@@ -276,8 +276,13 @@ def run_case(case: Case, preset: Preset) -> dict:
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
+
+    def say(message):  # streamed to the case's log by the parent
+        print(f"  [{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
+
     result = fit(start.model, start.params, obs, names, weights=weights, max_steps=preset.max_steps,
-                 num_pixels=preset.pixels, colors=None)
+                 num_pixels=preset.pixels, colors=None, log=say,
+                 progress=lambda i, loss: say(f"iteration {i:3d}  loss {loss:.4e}"))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
     v_err = float(np.linalg.norm(np.asarray(result.values["velocity"], float) - np.asarray(v0)))
@@ -315,19 +320,24 @@ def _child(argv: list[str]) -> None:
     print("SYSID-JSON " + json.dumps(row))
 
 
-def _run_child(case: Case, preset: Preset, timeout: float | None) -> dict:
+def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path) -> dict:
+    """Run one case in a subprocess; its terminal output (the fit's progress) streams to ``log``,
+    so a case that times out or crashes leaves its progress behind."""
     cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench_sysid import _child; _child(sys.argv[1:])",
            json.dumps(asdict(case)), json.dumps(asdict(preset))]
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"case": asdict(case), "key": case.key, "error": f"timed out after {timeout:.0f} s"}
-    for line in proc.stdout.splitlines():
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as fh:
+        try:
+            proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"case": asdict(case), "key": case.key, "error": f"timed out after {timeout:.0f} s (log: {log})"}
+    lines = log.read_text().splitlines()
+    for line in lines:
         if line.startswith("SYSID-JSON "):
             return json.loads(line[len("SYSID-JSON "):])
-    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-    return {"case": asdict(case), "key": case.key, "error": "failed: " + " | ".join(tail)}
-
+    tail = [ln for ln in lines if ln.strip()][-3:]
+    return {"case": asdict(case), "key": case.key,
+            "error": f"failed (exit {proc.returncode}): " + " | ".join(tail) + f" (log: {log})"}
 
 # --------------------------------------------------------------------------- the table
 
@@ -435,7 +445,7 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
           file=sys.stderr, flush=True)
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
-        row = _run_child(case, preset, args.timeout)
+        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log")
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")
