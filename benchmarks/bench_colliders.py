@@ -221,8 +221,7 @@ def _breakdown(scene, steps: int, reps: int, reference: float) -> None:
             dt, grid = model.dt, model.grid
             st = S.compute_stencil(grid, state.x)
             contact = S.gather_contact(model, st, state) if gather else None
-            F, aux = S.material_update(model, params, state)
-            tau = S.kirchhoff_stress(model, params, F, state.C, aux)
+            F, aux, tau = S.material_update(model, params, state)
             mass, momentum = S.p2g(grid, st, state, tau, dt, contact if mask else None)
             grid_v = S.grid_update(model, params, mass, momentum, state.time)
             ghost = S.ghost_nodes(model, params, state, st, tau, contact) if ghosts else None

@@ -37,7 +37,7 @@ id                        acts in
 ========================  =================================================================
 
 The step calls the hooks below (:func:`prepare`, :func:`initial_velocity`,
-:func:`stress`, :func:`return_map`, :func:`grid_velocity`, :func:`affine`); discovery
+:func:`stress`, :func:`material_update`, :func:`grid_velocity`, :func:`affine`); discovery
 code uses :func:`enable`, :func:`parameter_specs`, :func:`flatten` / :func:`unflatten`.
 """
 
@@ -407,37 +407,16 @@ def stress(model, params, state, F, aux, tau):
     return tau
 
 
-def return_map(material, F_trial, C, aux, body_params, dt, params):
-    """The body's return map, with the ``cohesion`` extension for sand bodies."""
+def material_update(material, F_trial, C, aux, body_params, dt, params):
+    """The body's return map and stress (:meth:`~jaxmpm.constitutive.Material.update`);
+    the ``cohesion`` extension gives sand bodies a tensile strength (the ``cohesion`` entry
+    of :func:`jaxmpm.constitutive.models.drucker_prager_projection`)."""
     ext = _ext(params)
     from .constitutive import Sand
 
     if "cohesion" in ext and isinstance(material, Sand):
-        c = jnp.asarray(ext["cohesion"]["strength"]).astype(F_trial.dtype)
-        return _cohesive_sand(F_trial, aux, body_params, c)
-    return material.return_map(F_trial, C, aux, body_params, dt)
-
-
-def _cohesive_sand(F_trial, aux, bp, cohesion):
-    """Drucker–Prager with a tensile strength: the cone's apex is moved to mean stress
-    ``+cohesion`` by shifting the Hencky strain by ``cohesion / (2 mu + D lam)`` before the
-    projection and back after it (Klar et al.'s cone for ``cohesion = 0``)."""
-    from .constitutive.base import lame_from_young, safe_norm
-    from .constitutive.models import _deviatoric, _from_hencky, _hencky, drucker_prager_alpha
-
-    mu, lam = lame_from_young(bp["E"], bp["nu"])
-    U, eps, V = _hencky(F_trial)
-    dim = eps.shape[-1]
-    shift = cohesion / (2.0 * mu + dim * lam)
-    eps_s = eps - shift
-    alpha = drucker_prager_alpha(bp["friction_angle"], dim)
-    trace = jnp.sum(eps_s, axis=-1, keepdims=True)
-    eps_hat = _deviatoric(eps_s)
-    eps_hat_norm = safe_norm(eps_hat, keepdims=True)
-    dgamma = eps_hat_norm + (dim * lam + 2.0 * mu) / (2.0 * mu) * trace * alpha
-    cone = eps_s - jnp.maximum(dgamma, 0.0) / eps_hat_norm * eps_hat
-    eps_new = jnp.where(trace >= 0, jnp.zeros_like(eps_s), cone) + shift
-    return _from_hencky(U, eps_new, V), aux
+        body_params = {**body_params, "cohesion": jnp.asarray(ext["cohesion"]["strength"]).astype(F_trial.dtype)}
+    return material.update(F_trial, C, aux, body_params, dt)
 
 
 def grid_velocity(model, params, v):

@@ -44,7 +44,6 @@ __all__ = [
     "stencil_offsets",
     "gather_contact",
     "material_update",
-    "kirchhoff_stress",
     "affine_momentum",
     "p2g",
     "p2g_boundary",
@@ -66,29 +65,22 @@ MASS_EPS = 1e-8
 # --------------------------------------------------------------------------- stages
 
 
-def material_update(model: Model, params: Params, state: State) -> tuple[Float[Array, "N D D"], Float[Array, " N"]]:
-    """``F_trial = (I + dt C) F`` followed by each body's return map."""
+def material_update(
+    model: Model, params: Params, state: State
+) -> tuple[Float[Array, "N D D"], Float[Array, " N"], Float[Array, "N D D"]]:
+    """``F_trial = (I + dt C) F``, then each body's return map and Kirchhoff stress
+    (:meth:`jaxmpm.constitutive.Material.update`): the new ``F``, ``aux`` and ``tau``."""
     dt = model.dt
     dim = state.dim
     eye = jnp.eye(dim, dtype=state.F.dtype)
     F_trial = jnp.einsum("nij,njk->nik", eye + dt * state.C, state.F)
-    Fs, auxs = [], []
+    Fs, auxs, taus = [], [], []
     for body, sl, bp in zip(model.bodies, model.body_slices(), params["bodies"]):
-        F, aux = _ext.return_map(body.material, F_trial[sl], state.C[sl], state.aux[sl], bp, dt, params)  # ext: cohesion
+        F, aux, tau = _ext.material_update(body.material, F_trial[sl], state.C[sl], state.aux[sl], bp, dt, params)
         Fs.append(F)
         auxs.append(aux)
-    return jnp.concatenate(Fs), jnp.concatenate(auxs)
-
-
-def kirchhoff_stress(
-    model: Model, params: Params, F: Float[Array, "N D D"], C: Float[Array, "N D D"], aux: Float[Array, " N"]
-) -> Float[Array, "N D D"]:
-    """Kirchhoff stress of every particle, body by body."""
-    taus = [
-        body.material.kirchhoff(F[sl], C[sl], aux[sl], bp)
-        for body, sl, bp in zip(model.bodies, model.body_slices(), params["bodies"])
-    ]
-    return jnp.concatenate(taus)
+        taus.append(tau)
+    return jnp.concatenate(Fs), jnp.concatenate(auxs), jnp.concatenate(taus)
 
 
 def gather_contact(model: Model, st: Stencil, state: State) -> cpic.Contact | None:
@@ -352,8 +344,7 @@ def step(model: Model, params: Params, state: State) -> State:
     dt, grid = model.dt, model.grid
     st = compute_stencil(grid, state.x)
     contact = gather_contact(model, st, state)
-    F, aux = material_update(model, params, state)
-    tau = kirchhoff_stress(model, params, F, state.C, aux)
+    F, aux, tau = material_update(model, params, state)
     tau = _ext.stress(model, params, state, F, aux, tau)  # extensions: rate_dependence, heterogeneity
     mass, momentum = p2g(grid, st, state, tau, dt, contact)
     rigid = p2g_boundary(model, state, state.time)

@@ -137,3 +137,53 @@ def test_block_on_friction_plane_obeys_coulomb(mu, theta, v0):
     assert accel == pytest.approx(expected, rel=0.05)
     if expected < 0:
         assert abs(vx[-1]) < 0.05 * v0  # it stopped (and stays)
+
+
+# --------------------------------------------------------------------------- fused update
+
+_UPDATE_CASES = {
+    "viscoplastic": {"mu": 2e3, "kappa": 1e5, "yield_stress": 300.0, "eta": 5.0},
+    "plasticine": {"E": 2e5, "nu": 0.3, "yield_stress": 1e3},
+    "sand": {"friction_angle": 35.0, "E": 3e5, "nu": 0.3},
+    "sand+cohesion": {"friction_angle": 35.0, "E": 3e5, "nu": 0.3, "cohesion": 500.0},
+    "elastic": {"E": 1e5, "nu": 0.3},
+    "corotated": {"E": 1e5, "nu": 0.3},
+    "newtonian": {"mu": 1.0, "kappa": 1e4},
+}
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("case", sorted(_UPDATE_CASES))
+def test_fused_update_equals_return_map_then_stress(case, dim):
+    """``Material.update`` (one SVD for Hencky materials) gives the return map's F and the
+    Kirchhoff stress of that F, and the same derivatives (float64: the two paths differ only
+    by the SVD's tie-break, ~1e-10 relative)."""
+    from jaxmpm.constitutive import MATERIALS
+
+    material = MATERIALS[case.split("+")[0]]()
+    params = {k: jnp.asarray(v, jnp.float64) for k, v in _UPDATE_CASES[case].items()}
+    rng = np.random.default_rng(dim)
+    n = 64
+    # stretched, sheared and compressed states, some beyond yield, a few at F = I
+    F = np.eye(dim) + 0.25 * rng.standard_normal((n, dim, dim))
+    F[:4] = np.eye(dim)
+    F = jnp.asarray(F)
+    C = jnp.asarray(rng.standard_normal((n, dim, dim)))
+    aux = material.init_aux(n, jnp.float64)
+    dt = 1e-3
+
+    def fused(F):
+        return material.update(F, C, aux, params, dt)
+
+    def separate(F):
+        F_new, aux_new = material.return_map(F, C, aux, params, dt)
+        return F_new, aux_new, material.kirchhoff(F_new, C, aux_new, params)
+
+    for a, b in zip(fused(F), separate(F)):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * float(jnp.max(jnp.abs(b))))
+    assert not np.allclose(separate(F)[2], 0.0)  # the stresses compared are not trivially zero
+    # directional derivatives of the stress agree too
+    dF = jnp.asarray(rng.standard_normal((n, dim, dim)))
+    d_fused = jax.jvp(lambda F: fused(F)[2], (F,), (dF,))[1]
+    d_separate = jax.jvp(lambda F: separate(F)[2], (F,), (dF,))[1]
+    np.testing.assert_allclose(d_fused, d_separate, rtol=1e-5, atol=1e-5 * float(jnp.max(jnp.abs(d_separate))))

@@ -133,3 +133,20 @@ class Material(eqx.Module):
         params: Params,
     ) -> Float[Array, "N D D"]:
         """Kirchhoff stress ``tau = P F^T`` (Pa·m^0, i.e. J times the Cauchy stress)."""
+
+    def update(
+        self,
+        F_trial: Float[Array, "N D D"],
+        C: Float[Array, "N D D"],
+        aux: Float[Array, " N"],
+        params: Params,
+        dt: float,
+    ) -> tuple[Float[Array, "N D D"], Float[Array, " N"], Float[Array, "N D D"]]:
+        """Return map and the Kirchhoff stress of the projected state, ``(F, aux, tau)``.
+
+        What a step calls. By default :meth:`return_map` then :meth:`kirchhoff`; materials
+        whose two halves share work (one SVD for both, see
+        :class:`~jaxmpm.constitutive.models.HenckyPlastic`) override it.
+        """
+        F, aux = self.return_map(F_trial, C, aux, params, dt)
+        return F, aux, self.kirchhoff(F, C, aux, params)

@@ -7,10 +7,12 @@ to ``>= 0.05``; Hencky strain ``eps = log sigma``; deviatoric part
 
 from __future__ import annotations
 
+import abc
 import math
 from typing import ClassVar
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .base import (
     ANGLE,
@@ -19,6 +21,7 @@ from .base import (
     POSITIVE,
     SIGMA_MIN,
     Material,
+    Params,
     det,
     lame_from_young,
     safe_norm,
@@ -38,9 +41,9 @@ def _from_hencky(U, eps, V):
     return jnp.einsum("nij,nj,nkj->nik", U, jnp.exp(eps), V)
 
 
-def _hencky_kirchhoff(F, mu, lam):
-    """StVK in Hencky strain: ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
-    U, eps, _ = _hencky(F)
+def _principal_kirchhoff(U, eps, mu, lam):
+    """StVK in Hencky strain from the left singular vectors and principal Hencky strains:
+    ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
     diag = 2.0 * mu * eps + lam * jnp.sum(eps, axis=-1, keepdims=True)
     return jnp.einsum("nij,nj,nkj->nik", U, diag, U)
 
@@ -54,15 +57,15 @@ def _bulk_lame(mu, kappa, dim):
     return kappa - 2.0 * mu / dim
 
 
-def _viscoplastic_projection(F_trial, mu, yield_stress, eta, dt):
-    """Bingham return map of Yue et al. 2015 as implemented by PAC-NeRF.
+def viscoplastic_projection(eps, mu, yield_stress, eta, dt):
+    """Bingham return map of Yue et al. 2015 as implemented by PAC-NeRF, on the principal
+    Hencky strains ``eps`` ``(N, D)``.
 
     ``s_tr = 2 mu eps_hat``, ``y = ||s_tr|| - sqrt(2/3) tau_Y``; where ``y > 0``:
     ``||s_new|| = ||s_tr|| - y / (1 + eta / (2 mu_hat dt))`` with
     ``mu_hat = mu sum(sigma^2) / D``; ``eps_new = s_new / (2 mu) + tr eps / D``.
     ``eta = 0`` is the exact von Mises projection (plasticine).
     """
-    U, eps, V = _hencky(F_trial)
     dim = eps.shape[-1]
     eps_hat = _deviatoric(eps)
     s_norm = 2.0 * mu * safe_norm(eps_hat, keepdims=True)
@@ -70,8 +73,66 @@ def _viscoplastic_projection(F_trial, mu, yield_stress, eta, dt):
     mu_hat = mu * jnp.sum(jnp.exp(2.0 * eps), axis=-1, keepdims=True) / dim
     new_norm = s_norm - excess / (1.0 + eta / (2.0 * mu_hat * dt))
     scale = jnp.where(excess > 0, new_norm / s_norm, 1.0)
-    eps_new = scale * eps_hat + jnp.mean(eps, axis=-1, keepdims=True)
-    return _from_hencky(U, eps_new, V)
+    return scale * eps_hat + jnp.mean(eps, axis=-1, keepdims=True)
+
+
+def drucker_prager_projection(eps, mu, lam, friction_angle, cohesion=0.0):
+    """Drucker–Prager return map of Klar et al. 2016 (PAC-NeRF's sand) on the principal
+    Hencky strains ``eps`` ``(N, D)``.
+
+    ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``; if ``tr eps >= 0`` the particle is
+    projected to the cone tip (``eps = 0``); otherwise
+    ``dgamma = ||eps_hat|| + (D lam + 2 mu) / (2 mu) tr(eps) alpha`` and
+    ``eps <- eps - max(dgamma, 0) eps_hat / ||eps_hat||``. A ``cohesion`` (Pa, the tensile
+    strength) moves the cone's apex to mean stress ``+cohesion``: the strain is shifted by
+    ``cohesion / (2 mu + D lam)`` before the projection and back after it.
+    """
+    dim = eps.shape[-1]
+    shift = cohesion / (2.0 * mu + dim * lam)
+    eps = eps - shift
+    alpha = drucker_prager_alpha(friction_angle, dim)
+    trace = jnp.sum(eps, axis=-1, keepdims=True)
+    eps_hat = _deviatoric(eps)
+    eps_hat_norm = safe_norm(eps_hat, keepdims=True)
+    dgamma = eps_hat_norm + (dim * lam + 2.0 * mu) / (2.0 * mu) * trace * alpha
+    cone = eps - jnp.maximum(dgamma, 0.0) / eps_hat_norm * eps_hat
+    return jnp.where(trace >= 0, jnp.zeros_like(eps), cone) + shift
+
+
+class HenckyPlastic(Material):
+    """StVK-in-Hencky-strain elasticity with a return map that acts on the principal Hencky
+    strains (viscoplastic, plasticine, sand).
+
+    Subclasses give :meth:`lame` and :meth:`project`; this class builds the return map
+    ``F = U exp(project(log sigma)) V^T`` and the stress
+    ``tau = U diag(2 mu eps + lam tr eps) U^T``. :meth:`update` does both from **one** SVD
+    of ``F_trial`` (the projected ``F``'s SVD is ``U, exp(eps_new), V``), instead of a second
+    SVD of the projected ``F`` for the stress.
+    """
+
+    @abc.abstractmethod
+    def lame(self, params: Params, dim: int) -> tuple[Float[Array, ""], Float[Array, ""]]:
+        """Lamé parameters ``(mu, lam)`` (Pa) of the elastic part in ``dim`` dimensions."""
+
+    @abc.abstractmethod
+    def project(self, eps: Float[Array, "N D"], params: Params, dt: float) -> Float[Array, "N D"]:
+        """The return map on the principal Hencky strains ``eps = log sigma``."""
+
+    def return_map(self, F_trial, C, aux, params, dt):
+        U, eps, V = _hencky(F_trial)
+        return _from_hencky(U, self.project(eps, params, dt), V), aux
+
+    def kirchhoff(self, F, C, aux, params):
+        U, eps, _ = _hencky(F)
+        return _principal_kirchhoff(U, eps, *self.lame(params, F.shape[-1]))
+
+    def update(self, F_trial, C, aux, params, dt):
+        U, eps, V = _hencky(F_trial)
+        eps = self.project(eps, params, dt)
+        # the stress sees the strains clamped as an SVD of the projected F would clamp them
+        eps_stress = jnp.maximum(eps, math.log(SIGMA_MIN))
+        tau = _principal_kirchhoff(U, eps_stress, *self.lame(params, F_trial.shape[-1]))
+        return _from_hencky(U, eps, V), aux, tau
 
 
 class Elastic(Material):
@@ -150,8 +211,9 @@ class Newtonian(Material):
         return pressure_part + params["mu"] * J * 0.5 * (C + jnp.swapaxes(C, -1, -2))
 
 
-class Viscoplastic(Material):
-    """Non-Newtonian Bingham fluid (Hencky StVK + the viscoplastic return map).
+class Viscoplastic(HenckyPlastic):
+    """Non-Newtonian Bingham fluid (Hencky StVK + the viscoplastic return map,
+    :func:`viscoplastic_projection`).
 
     Elasticity ``tau = U diag(2 mu eps + lam tr eps) U^T`` with ``lam = kappa - 2 mu / D``;
     yield at ``||s|| = sqrt(2/3) tau_Y`` with plastic viscosity ``eta``.
@@ -163,16 +225,14 @@ class Viscoplastic(Material):
     required: ClassVar[tuple[str, ...]] = ("mu", "kappa", "yield_stress", "eta")
     ranges: ClassVar = {"mu": POSITIVE, "kappa": POSITIVE, "yield_stress": NON_NEGATIVE, "eta": NON_NEGATIVE}
 
-    def return_map(self, F_trial, C, aux, params, dt):
-        F = _viscoplastic_projection(F_trial, params["mu"], params["yield_stress"], params["eta"], dt)
-        return F, aux
+    def lame(self, params, dim):
+        return params["mu"], _bulk_lame(params["mu"], params["kappa"], dim)
 
-    def kirchhoff(self, F, C, aux, params):
-        mu = params["mu"]
-        return _hencky_kirchhoff(F, mu, _bulk_lame(mu, params["kappa"], F.shape[-1]))
+    def project(self, eps, params, dt):
+        return viscoplastic_projection(eps, params["mu"], params["yield_stress"], params["eta"], dt)
 
 
-class Plasticine(Material):
+class Plasticine(HenckyPlastic):
     """von Mises plasticity: the viscoplastic model with ``eta = 0`` and E, nu elasticity.
 
     Parameters: ``E`` (Pa), ``nu``, ``yield_stress`` (Pa).
@@ -182,14 +242,12 @@ class Plasticine(Material):
     required: ClassVar[tuple[str, ...]] = ("E", "nu", "yield_stress")
     ranges: ClassVar = {"E": POSITIVE, "nu": POISSON, "yield_stress": NON_NEGATIVE}
 
-    def return_map(self, F_trial, C, aux, params, dt):
-        mu, _ = lame_from_young(params["E"], params["nu"])
-        F = _viscoplastic_projection(F_trial, mu, params["yield_stress"], 0.0, dt)
-        return F, aux
+    def lame(self, params, dim):
+        return lame_from_young(params["E"], params["nu"])
 
-    def kirchhoff(self, F, C, aux, params):
-        mu, lam = lame_from_young(params["E"], params["nu"])
-        return _hencky_kirchhoff(F, mu, lam)
+    def project(self, eps, params, dt):
+        mu, _ = lame_from_young(params["E"], params["nu"])
+        return viscoplastic_projection(eps, mu, params["yield_stress"], 0.0, dt)
 
 
 def drucker_prager_alpha(friction_angle, dim: int):
@@ -211,15 +269,13 @@ def drucker_prager_alpha(friction_angle, dim: int):
     return _SQRT_2_3 * 2.0 * sin_phi / (3.0 - sin_phi)
 
 
-class Sand(Material):
-    """Drucker–Prager sand (Klar et al. 2016), cohesionless, as PAC-NeRF implements it.
-
-    ``alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi))``; if ``tr eps >= 0`` the particle is
-    projected to the cone tip (``eps = 0``); otherwise
-    ``dgamma = ||eps_hat|| + (D lam + 2 mu) / (2 mu) tr(eps) alpha`` and
-    ``eps <- eps - max(dgamma, 0) eps_hat / ||eps_hat||``.
+class Sand(HenckyPlastic):
+    """Drucker–Prager sand (Klar et al. 2016), cohesionless, as PAC-NeRF implements it
+    (:func:`drucker_prager_projection`).
 
     Parameters: ``friction_angle`` (degrees), ``E`` (Pa, default 1e6), ``nu`` (default 0.3).
+    A body-parameter entry ``cohesion`` (Pa; set by the ``cohesion`` extension, not a scene
+    parameter) moves the cone's apex to a tensile strength.
     """
 
     name: ClassVar[str] = "sand"
@@ -227,22 +283,12 @@ class Sand(Material):
     defaults: ClassVar[dict[str, float]] = {"E": 1e6, "nu": 0.3}
     ranges: ClassVar = {"friction_angle": ANGLE, "E": POSITIVE, "nu": POISSON}
 
-    def return_map(self, F_trial, C, aux, params, dt):
-        mu, lam = lame_from_young(params["E"], params["nu"])
-        U, eps, V = _hencky(F_trial)
-        dim = eps.shape[-1]
-        alpha = drucker_prager_alpha(params["friction_angle"], dim)
-        trace = jnp.sum(eps, axis=-1, keepdims=True)
-        eps_hat = _deviatoric(eps)
-        eps_hat_norm = safe_norm(eps_hat, keepdims=True)
-        dgamma = eps_hat_norm + (dim * lam + 2.0 * mu) / (2.0 * mu) * trace * alpha
-        cone = eps - jnp.maximum(dgamma, 0.0) / eps_hat_norm * eps_hat
-        eps_new = jnp.where(trace >= 0, jnp.zeros_like(eps), cone)
-        return _from_hencky(U, eps_new, V), aux
+    def lame(self, params, dim):
+        return lame_from_young(params["E"], params["nu"])
 
-    def kirchhoff(self, F, C, aux, params):
+    def project(self, eps, params, dt):
         mu, lam = lame_from_young(params["E"], params["nu"])
-        return _hencky_kirchhoff(F, mu, lam)
+        return drucker_prager_projection(eps, mu, lam, params["friction_angle"], params.get("cohesion", 0.0))
 
 
 MATERIALS: dict[str, type[Material]] = {
