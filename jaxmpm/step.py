@@ -340,18 +340,30 @@ def penetration_correction(model: Model, contact: cpic.Contact | None, v: Float[
 
 
 def step(model: Model, params: Params, state: State) -> State:
-    """Advance ``state`` by one MPM step of ``model.dt`` seconds."""
+    """Advance ``state`` by one MPM step of ``model.dt`` seconds.
+
+    Each stage runs under a :func:`jax.named_scope` of its name, so profiles (and their
+    backward passes, ``transpose(jvp(<stage>))``) are attributed per stage
+    (``benchmarks/profile_step.py``).
+    """
     dt, grid = model.dt, model.grid
-    st = compute_stencil(grid, state.x)
-    contact = gather_contact(model, st, state)
-    F, aux, tau = material_update(model, params, state)
-    tau = _ext.stress(model, params, state, F, aux, tau)  # extensions: rate_dependence, heterogeneity
-    mass, momentum = p2g(grid, st, state, tau, dt, contact)
-    rigid = p2g_boundary(model, state, state.time)
-    grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
-    v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, st, tau, contact))
-    C = _ext.affine(model, params, C)  # extensions: damping
-    x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
+    with jax.named_scope("stencil"):
+        st = compute_stencil(grid, state.x)
+    with jax.named_scope("contact"):
+        contact = gather_contact(model, st, state)
+    with jax.named_scope("material"):
+        F, aux, tau = material_update(model, params, state)
+        tau = _ext.stress(model, params, state, F, aux, tau)  # extensions: rate_dependence, heterogeneity
+    with jax.named_scope("p2g"):
+        mass, momentum = p2g(grid, st, state, tau, dt, contact)
+        rigid = p2g_boundary(model, state, state.time)
+    with jax.named_scope("grid_update"):
+        grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
+    with jax.named_scope("g2p"):
+        v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, st, tau, contact))
+        C = _ext.affine(model, params, C)  # extensions: damping
+    with jax.named_scope("advect"):
+        x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
     tag = state.tag if contact is None else contact.tag
     return eqx.tree_at(
         lambda s: (s.x, s.v, s.C, s.F, s.aux, s.tag, s.time), state, (x, v, C, F, aux, tag, state.time + dt)

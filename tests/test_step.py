@@ -95,16 +95,21 @@ def test_checkpoint_policies_give_identical_gradients():
 def test_vmap_over_parameter_sets_equals_a_loop():
     spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=3, substeps=10, floor={"point": [0, 0.28], "normal": [0, 1]})
     scene = load_scene(spec, dtype=jnp.float64)
+    # stable parameter sets only: an exploding rollout (kappa >= 3e4 at this dt) amplifies the
+    # round-off of a different summation order in the scatter to O(1), so comparing it is moot
     mus = jnp.array([1.0, 10.0, 100.0, 300.0])
-    kappas = jnp.array([1e3, 1e4, 3e4, 1e5])
+    kappas = jnp.array([1e3, 2e3, 5e3, 1e4])
 
-    def final_positions(mu, kappa):
+    def rollout(mu, kappa):
         body = dict(scene.params["bodies"][0], mu=mu, kappa=kappa)
-        return simulate(scene.model, dict(scene.params, bodies=(body,))).x[-1]
+        return simulate(scene.model, dict(scene.params, bodies=(body,)))
 
-    batched = jax.jit(jax.vmap(final_positions))(mus, kappas)
+    batched = jax.jit(jax.vmap(lambda mu, kappa: rollout(mu, kappa).x[-1]))(mus, kappas)
     for i in range(4):
-        np.testing.assert_allclose(batched[i], final_positions(mus[i], kappas[i]), rtol=1e-10, atol=1e-12)
+        single = rollout(mus[i], kappas[i])
+        assert single.first_unstable_frame() is None
+        np.testing.assert_allclose(batched[i], single.x[-1], rtol=1e-10, atol=1e-12)
+    assert float(jnp.max(jnp.abs(batched[0] - batched[3]))) > 1e-3  # the parameter sets differ in outcome
 
 
 def test_forward_and_reverse_mode_agree_for_velocity_and_gravity():

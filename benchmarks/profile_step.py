@@ -1,0 +1,153 @@
+"""Where the time of one MPM step and of its gradient goes, stage by stage (XLA op profile).
+
+    pip install xprof                     # reads jax.profiler's traces (not a jaxmpm dependency)
+    python benchmarks/profile_step.py [--material corotated] [--particles 25000] [--grid 64]
+                                      [--repeats 10] [--json out.json]
+
+Traces ``--repeats`` calls of (a) the jitted step and (b) the jitted gradient of a loss of
+one step with respect to the parameters and the state, with :func:`jax.profiler.trace`. Every
+XLA operation that ran is attributed to the step stage whose :func:`jax.named_scope` its
+metadata carries (``jaxmpm.step.step`` names them: stencil, contact, material, p2g,
+grid_update, g2p, advect), and to the backward pass when its metadata says ``transpose(``
+(reverse mode's transposition of the forward's linearisation). Times are summed over XLA's
+worker threads (CPU milliseconds per call), so the table is the cost of each stage, not the
+wall time: on 2 cores the wall time is between the total / 2 and the total.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import json
+import re
+import sys
+import tempfile
+import time
+
+STAGES = ("stencil", "contact", "material", "p2g", "grid_update", "g2p", "advect")
+
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+) = .*?metadata=\{([^}]*)\}")
+_OP_NAME = re.compile(r'op_name="([^"]*)"')
+
+
+def op_names(hlo_text: str) -> dict[str, str]:
+    """Instruction name -> its ``op_name`` metadata, from an optimised HLO module's text."""
+    out = {}
+    for line in hlo_text.splitlines():
+        m = _INSTRUCTION.match(line)
+        if m:
+            name = _OP_NAME.search(m.group(2))
+            if name:
+                out[m.group(1)] = name.group(1)
+    return out
+
+
+def stage_of(op_name: str) -> tuple[str, str]:
+    """``(stage, "forward" | "backward")`` of an op from its ``op_name`` metadata."""
+    stage = next((s for s in STAGES if re.search(rf"(^|[/(]){s}([/)]|$)", op_name)), "outside the step")
+    return stage, "backward" if "transpose(" in op_name else "forward"
+
+
+def _trace_events(log_dir: str) -> list[dict]:
+    try:
+        from xprof.convert import raw_to_tool_data
+    except ImportError:
+        sys.exit("profile_step.py reads the trace with xprof: pip install xprof")
+    path = glob.glob(f"{log_dir}/**/*.xplane.pb", recursive=True)[0]
+    data, _ = raw_to_tool_data.xspace_to_tool_data([path], "trace_viewer", {})
+    return json.loads(data)["traceEvents"]
+
+
+def profile(fn, args, repeats: int) -> tuple[dict, float, float]:
+    """Per-op CPU ms per call of jitted ``fn(*args)``, and its wall and CPU ms per call."""
+    import jax
+
+    compiled = jax.jit(fn).lower(*args).compile()
+    names = op_names(compiled.as_text())
+    jax.block_until_ready(compiled(*args))
+    with tempfile.TemporaryDirectory() as log_dir:
+        t0, c0 = time.perf_counter(), time.process_time()
+        with jax.profiler.trace(log_dir):
+            for _ in range(repeats):
+                jax.block_until_ready(compiled(*args))
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        events = _trace_events(log_dir)
+    per_op = collections.defaultdict(float)
+    for e in events:
+        op = e.get("args", {}).get("hlo_op")
+        if e.get("ph") == "X" and op is not None:
+            per_op[op] += e["dur"] / 1e3 / repeats
+    table = {op: {"ms": ms, "op_name": names.get(op, "")} for op, ms in per_op.items()}
+    return table, 1e3 * wall / repeats, 1e3 * cpu / repeats
+
+
+def by_stage(table: dict) -> dict:
+    out = collections.defaultdict(float)
+    for row in table.values():
+        out[stage_of(row["op_name"])] += row["ms"]
+    return dict(out)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--material", default="corotated")
+    parser.add_argument("--particles", type=int, default=25_000)
+    parser.add_argument("--grid", type=int, default=64)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--top", type=int, default=15, help="list the most expensive ops")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmpm.bench import _scene_model
+    from jaxmpm.model import initial_state
+    from jaxmpm.step import step
+
+    model, params = _scene_model(args.particles, args.grid, args.material, jnp.float32)
+    state = initial_state(model, params)
+    advance = jax.jit(lambda s: step(model, params, s))
+    for _ in range(5):  # a state with nonzero C and F != I
+        state = advance(state)
+
+    def forward(params, state):
+        return step(model, params, state)
+
+    def loss(params, state):
+        return jnp.mean(step(model, params, state).x ** 2)
+
+    gradient = jax.grad(loss, argnums=(0, 1), allow_int=True)
+    fwd, fwd_wall, fwd_cpu = profile(forward, (params, state), args.repeats)
+    bwd, bwd_wall, bwd_cpu = profile(gradient, (params, state), args.repeats)
+
+    f_stage, b_stage = by_stage(fwd), by_stage(bwd)
+    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
+          f"(summed over XLA's threads), {args.repeats} calls\n")
+    print("| stage | step: forward | gradient: forward part | gradient: backward part | backward ÷ forward |")
+    print("|---|---|---|---|---|")
+    for s in (*STAGES, "outside the step"):
+        f, gf, gb = f_stage.get((s, "forward"), 0.0), b_stage.get((s, "forward"), 0.0), b_stage.get((s, "backward"), 0.0)
+        if f or gf or gb:
+            print(f"| {s} | {f:.2f} | {gf:.2f} | {gb:.2f} | {gb / f if f else float('nan'):.1f} |")
+    f_sum, b_sum = sum(r["ms"] for r in fwd.values()), sum(r["ms"] for r in bwd.values())
+    print(f"| **total in ops** | {f_sum:.2f} | {sum(v for (s, d), v in b_stage.items() if d == 'forward'):.2f} | "
+          f"{sum(v for (s, d), v in b_stage.items() if d == 'backward'):.2f} | |")
+    print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; gradient {bwd_wall:.2f} ms wall / "
+          f"{bwd_cpu:.2f} ms CPU per call (gradient ÷ step: {bwd_cpu / fwd_cpu:.1f}x CPU)")
+    print(f"\nthe {args.top} most expensive ops of the gradient:\n")
+    print("| CPU ms | op | stage | pass | op_name |")
+    print("|---|---|---|---|---|")
+    for op, row in sorted(bwd.items(), key=lambda kv: -kv[1]["ms"])[: args.top]:
+        stage, direction = stage_of(row["op_name"])
+        print(f"| {row['ms']:.2f} | {op} | {stage} | {direction} | {row['op_name'][-90:]} |")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"args": vars(args), "forward": fwd, "gradient": bwd, "wall_ms": [fwd_wall, bwd_wall],
+                       "cpu_ms": [fwd_cpu, bwd_cpu]}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
