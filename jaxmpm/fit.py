@@ -458,6 +458,18 @@ ESCAPE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 MAX_ESCAPES = 4
 
 
+def _gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
+    """The undamped Gauss–Newton step at ``flat`` (``None`` if the residuals or Jacobian are
+    not finite) and whether every component of it is within ``max(rtol, 1e-3) (1 + |y|)`` in
+    optimisation units (decades, degrees, m/s): a stationary point at this precision."""
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return None, False
+    y = np.asarray(flat, np.float64)
+    delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+    return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+
+
 def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
 
@@ -471,14 +483,10 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     step is within ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees,
     m/s): a genuine stationary point at this precision.
     """
-    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    delta, stationary = _gauss_newton_step(rj, flat, rtol)
+    if delta is None or stationary:
+        return None, stationary
     y = np.asarray(flat, np.float64)
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-        return None, False
-    delta = np.linalg.lstsq(J, -r, rcond=None)[0]
-    stationary = bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
-    if stationary:
-        return None, True
     for alpha in ESCAPE_STEPS:
         trial = jnp.asarray(y + alpha * delta, flat.dtype)
         f_t = float(loss_of(trial))
@@ -490,8 +498,9 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
 def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     """The stage message of both LM paths for how it stopped: ``"converged"`` (tolerance
     test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"rough"``
-    (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable) or
-    ``"cap"`` (iteration limit)."""
+    (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
+    (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
+    point: converged)."""
     return {
         "converged": f"converged in {iterations} iterations",
         "stationary": (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
@@ -502,6 +511,8 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
                   "loss at this precision; try float64, another starting point or method='adam')"),
         "unstable": f"stalled after {iterations} iterations: the trial steps made the simulation unstable",
         "cap": f"did not converge within {max_steps} iterations",
+        "cap-stationary": (f"converged in {iterations} iterations (the iteration limit was reached, but the "
+                           "Gauss-Newton step there is within tolerance: a stationary point at this precision)"),
     }[how]
 
 
@@ -586,8 +597,11 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
                 break
     if stalled:
         how = "unstable" if unhealthy else "stationary" if stationary else "rough"
-    else:
-        how = "converged" if converged else "cap"
+    elif converged:
+        how = "converged"
+    else:  # the iteration limit; converged all the same if the Gauss-Newton step is within tolerance
+        converged = _gauss_newton_step(rj, jnp.asarray(y, flat.dtype), rtol)[1]
+        how = "cap-stationary" if converged else "cap"
     message = _lm_message(how, iterations, max_steps)
     y_out = unravel(jnp.asarray(y, flat.dtype))
     # only a stall against unstable trial points calls for a smaller dt: single rejected
@@ -666,8 +680,10 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         how = "unstable" if unhealthy else "stationary" if stationary else "rough"
     elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
         how = "converged" if converged else "rough"
-    else:
-        how = "cap"
+    else:  # the iteration limit; converged all the same if the Gauss-Newton step is within tolerance
+        rj = residuals_and_jacobian(residuals, y)[0] if escape_tools is None else escape_tools[0]
+        converged = _gauss_newton_step(rj, jax.flatten_util.ravel_pytree(y)[0], rtol)[1]
+        how = "cap-stationary" if converged else "cap"
     return _StageOutcome(y, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy)
 
 

@@ -1,5 +1,5 @@
-"""The system-identification benchmark harness (``jaxmpm bench sysid``): its tables, and a
-CI-sized run (marked slow: one coarse 3D identification with a mesh collider)."""
+"""The system-identification benchmark harness (``jaxmpm bench sysid``): its tables, and the
+CI-sized preset run end to end (one coarse 3D identification, ~70 s)."""
 
 import json
 
@@ -49,7 +49,6 @@ def test_summary_table_and_targets():
     assert "1/2 cases within 0.3" in targets([row, dict(row, errors={"friction_angle": 0.4})])
 
 
-@pytest.mark.slow
 def test_ci_preset_runs_end_to_end(tmp_path):
     code = run_sysid_bench(["--preset", "ci", "--out", str(tmp_path)])
     assert code == 0

@@ -168,3 +168,32 @@ def test_gauss_newton_escape_moves_off_a_collapsed_trust_region_and_recognises_a
             assert abs(float(found[0][0]) - 3.0) < 0.01
         else:
             assert found is None and stationary
+
+
+@pytest.mark.parametrize("path", ["_run_lm", "_run_lm_optimistix"])
+def test_lm_at_the_iteration_limit_is_converged_only_at_a_stationary_point(path):
+    """A stage cut off by ``max_steps`` with the undamped Gauss-Newton step within
+    ``1e-3 (1 + |y|)`` (here, for a linear residual, exactly ``3 - y``) has converged and says
+    so; one cut off before that has not. Both LM paths, every cut-off from 1 to 8 iterations."""
+    import importlib
+    import itertools
+
+    import jax.numpy as jnp
+
+    run = getattr(importlib.import_module("jaxmpm.fit"), path)
+
+    def residuals(y):
+        return jnp.stack([y["a"] - 3.0, 0.5 * (y["a"] - 3.0)])
+
+    seen = set()
+    for start, steps in itertools.product((0.0, -1000.0), range(1, 9)):
+        out = run(residuals, {"a": jnp.asarray(start, jnp.float64)}, max_steps=steps, rtol=1e-12, atol=1e-30,
+                  progress=None, offset=0)
+        if out.converged and "iteration limit" not in out.message:  # its own tolerance test stopped it
+            continue
+        a = float(out.y["a"])
+        stationary = abs(3.0 - a) <= 1e-3 * (1.0 + abs(a))
+        assert out.converged is stationary, (steps, a, out.message)
+        assert ("iteration limit was reached" in out.message) is stationary
+        seen.add(stationary)
+    assert seen == {True, False}  # both kinds of cut-off were exercised
