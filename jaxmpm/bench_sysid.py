@@ -339,6 +339,7 @@ def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path) -> 
     return {"case": asdict(case), "key": case.key,
             "error": f"failed (exit {proc.returncode}): " + " | ".join(tail) + f" (log: {log})"}
 
+
 # --------------------------------------------------------------------------- the table
 
 

@@ -246,7 +246,7 @@ class Plasticine(HenckyPlastic):
         return lame_from_young(params["E"], params["nu"])
 
     def project(self, eps, params, dt):
-        mu, _ = lame_from_young(params["E"], params["nu"])
+        mu, _ = self.lame(params, eps.shape[-1])
         return viscoplastic_projection(eps, mu, params["yield_stress"], 0.0, dt)
 
 
@@ -287,7 +287,7 @@ class Sand(HenckyPlastic):
         return lame_from_young(params["E"], params["nu"])
 
     def project(self, eps, params, dt):
-        mu, lam = lame_from_young(params["E"], params["nu"])
+        mu, lam = self.lame(params, eps.shape[-1])
         return drucker_prager_projection(eps, mu, lam, params["friction_angle"], params.get("cohesion", 0.0))
 
 
