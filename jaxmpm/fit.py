@@ -680,10 +680,12 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         how = "unstable" if unhealthy else "stationary" if stationary else "rough"
     elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
         how = "converged" if converged else "rough"
-    else:  # the iteration limit; converged all the same if the Gauss-Newton step is within tolerance
+    elif iterations >= max_steps:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
         rj = residuals_and_jacobian(residuals, y)[0] if escape_tools is None else escape_tools[0]
         converged = _gauss_newton_step(rj, jax.flatten_util.ravel_pytree(y)[0], rtol)[1]
         how = "cap-stationary" if converged else "cap"
+    else:  # optimistix stopped with a failure result before the limit
+        how = "cap"
     return _StageOutcome(y, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy)
 
 
