@@ -239,6 +239,16 @@ def errors(names, estimate: dict, truth: dict) -> dict:
     return out
 
 
+def fit_reporters(t0: float) -> dict:
+    """``log`` and ``progress`` callbacks for :func:`jaxmpm.fit.fit` that print each message and
+    iteration to stderr with the seconds since ``t0`` (a case's log, streamed by the runner)."""
+
+    def say(message):
+        print(f"  [{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
+
+    return {"log": say, "progress": lambda i, loss: say(f"iteration {i:3d}  loss {loss:.4e}")}
+
+
 def run_case(case: Case, preset: Preset) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row."""
     import jax.numpy as jnp
@@ -276,13 +286,8 @@ def run_case(case: Case, preset: Preset) -> dict:
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
-
-    def say(message):  # streamed to the case's log by the parent
-        print(f"  [{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
-
     result = fit(start.model, start.params, obs, names, weights=weights, max_steps=preset.max_steps,
-                 num_pixels=preset.pixels, colors=None, log=say,
-                 progress=lambda i, loss: say(f"iteration {i:3d}  loss {loss:.4e}"))
+                 num_pixels=preset.pixels, colors=None, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
     v_err = float(np.linalg.norm(np.asarray(result.values["velocity"], float) - np.asarray(v0)))

@@ -479,9 +479,7 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     ``flat`` and tried at the lengths ``ESCAPE_STEPS``.
 
     Returns ``(new_flat, new_loss)`` for the first length that lowers the loss, else
-    ``None, stationary`` where ``stationary`` says whether every component of the Gauss–Newton
-    step is within ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees,
-    m/s): a genuine stationary point at this precision.
+    ``None, stationary`` (the test of :func:`_gauss_newton_step`).
     """
     delta, stationary = _gauss_newton_step(rj, flat, rtol)
     if delta is None or stationary:

@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import resource
-import sys
 import time
 
 import jax
@@ -29,7 +28,7 @@ import numpy as np
 
 
 def main() -> None:
-    from jaxmpm.bench_sysid import Case, INITIAL_GUESS, Preset, rig, scene_spec, truth_values
+    from jaxmpm.bench_sysid import Case, INITIAL_GUESS, Preset, fit_reporters, rig, scene_spec, truth_values
     from jaxmpm.fit import apply_unconstrained, fit, residuals_and_jacobian, to_unconstrained
     from jaxmpm.losses import build_objective, make_fit_renderer
     from jaxmpm.observe import Observation
@@ -99,12 +98,8 @@ def main() -> None:
     if args.fit or args.fit_only:
         start = load_scene(scene_spec(case, preset, INITIAL_GUESS["newtonian"], velocity=(0.0, 0.0, 0.0)))
         t0, c0 = time.perf_counter(), time.process_time()
-
-        def say(message):
-            print(f"  [{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
-
-        result = fit(start.model, start.params, tracks, names + ["velocity"], max_steps=preset.max_steps, log=say,
-                     progress=lambda i, loss: say(f"iteration {i:3d}  loss {loss:.4e}"))
+        result = fit(start.model, start.params, tracks, names + ["velocity"], max_steps=preset.max_steps,
+                     **fit_reporters(t0))
         out["fit_s"] = time.perf_counter() - t0
         out["fit_cpu_s"] = time.process_time() - c0
         out["fit_message"] = result.message
