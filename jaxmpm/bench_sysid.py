@@ -249,6 +249,19 @@ def fit_reporters(t0: float) -> dict:
     return {"log": say, "progress": lambda i, loss: say(f"iteration {i:3d}  loss {loss:.4e}")}
 
 
+def code_version() -> str:
+    """The commit the package runs from: ``$JAXMPM_COMMIT`` (set it when running from an
+    exported snapshot), else ``git rev-parse`` of the package's checkout, else ``"unknown"``."""
+    if os.environ.get("JAXMPM_COMMIT"):
+        return os.environ["JAXMPM_COMMIT"]
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=10)
+    except OSError:
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
 def run_case(case: Case, preset: Preset) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row."""
     import jax.numpy as jnp
@@ -311,6 +324,7 @@ def run_case(case: Case, preset: Preset) -> dict:
         "substeps": int(result.substeps),
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
         "dtype": str(jnp.zeros(()).dtype),
+        "code": code_version(),
     }
 
 

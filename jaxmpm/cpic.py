@@ -809,6 +809,23 @@ def materialize(tree, token):
     return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
 
 
+#: Floor of the incompatible-node weight ``W`` a ghost velocity is divided by (of a stencil's
+#: total weight 1): below it the ghost's mean offset fades to zero, keeping its tangent finite.
+GHOST_WEIGHT_MIN = 1e-6
+
+
+def ghost_mean_offset(moment: Float[Array, "N D"], weight: Float[Array, " N"], dx: float) -> Float[Array, "N D"]:
+    """``M / W`` (m): the weighted mean offset ``x_i - x_p`` of a particle's incompatible nodes,
+    from ``moment = M / dx`` (cells) and ``weight = W``.
+
+    ``W`` is floored at :data:`GHOST_WEIGHT_MIN`: where a stencil barely reaches the collider's
+    nodes (``W`` ~ 1e-20 happens) the offset fades to zero instead of dividing by ``W``, whose
+    square underflows in float32 and made the forward-mode tangent NaN while the value stayed
+    finite. The nodes concerned carry less than 1e-6 of the particle's mass.
+    """
+    return (dx * moment) / jnp.maximum(weight, GHOST_WEIGHT_MIN)[:, None]
+
+
 class GhostNodes(eqx.Module):
     """The velocity G2P reads from a particle's incompatible nodes (CPIC's "fake" velocity).
 
@@ -816,7 +833,7 @@ class GhostNodes(eqx.Module):
     they been ordinary nodes they would have received only this particle's contribution
     ``w_i (m u + A (x_i - x_p))`` (``u = v_p + dt g``, ``A`` the MLS affine/stress matrix).
     Their mean velocity ``g = u + (A/m) M / W`` (``W = sum w_i``, ``M = sum w_i (x_i - x_p)``
-    over the incompatible nodes of collider ``c``) is the particle's velocity against the
+    over the incompatible nodes of collider ``c``; ``M / W`` by :func:`ghost_mean_offset`) is the particle's velocity against the
     collider *including the push of its own stress*; it is projected once per particle and
     collider — Coulomb friction mu_b, restitution ``e`` on the particle's own approach speed,
     relative to the collider's velocity — and every incompatible node of ``c`` reads the
@@ -847,8 +864,7 @@ class GhostNodes(eqx.Module):
     def projected(self, c: int, dx: float) -> Float[Array, "N D"]:
         """``P = proj(u + B M / W)`` for collider ``c``."""
         ct = self.contact
-        weight = self.weight[c]
-        mean = (dx * self.moment[c]) / jnp.where(weight > 0, weight, 1.0)[:, None]
+        mean = ghost_mean_offset(self.moment[c], self.weight[c], dx)
         g = self.u + row_matvec(self.B, mean)
         n, vc = ct.normal[c], ct.v_collider[c]
         kind = self.kinds[c]

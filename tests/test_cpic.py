@@ -10,13 +10,32 @@ import pytest
 from collider_scenes import ELASTIC, FLUID, SAND, Incline, depth_inside, rollout
 
 from jaxmpm.colliders import Box, Plane
-from jaxmpm.cpic import CollisionField
+from jaxmpm.cpic import GHOST_WEIGHT_MIN, CollisionField, ghost_mean_offset
 from jaxmpm.errors import SceneError
 from jaxmpm.fit import fit, set_param
 from jaxmpm.model import Model
 from jaxmpm.observe import Observation
 from jaxmpm.scene import load_scene
 from jaxmpm.step import simulate
+
+# ----------------------------------------------------------------------------- ghost nodes
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_ghost_mean_offset_is_exact_for_real_weights_and_has_finite_tangents_as_they_vanish(dtype):
+    """A stencil that barely reaches a collider's nodes has ``W`` ~ 1e-20 (a product of three
+    tiny B-spline weights): dividing by it made the forward-mode tangent NaN while the value
+    stayed finite (found as a NaN Jacobian in the viscoplastic/box identification)."""
+    dx = 0.04
+    weight = jnp.asarray([0.5, 2 * GHOST_WEIGHT_MIN, 1e-20, 1e-30, 0.0], dtype)
+    offset = jnp.asarray([[0.3, -0.2, 0.1]] * 5, dtype)  # cells
+    moment = weight[:, None] * offset
+    mean, tangent = jax.jvp(lambda m, w: ghost_mean_offset(m, w, dx), (moment, weight),
+                            (jnp.ones_like(moment), jnp.ones_like(weight)))
+    assert np.all(np.isfinite(np.asarray(tangent)))
+    np.testing.assert_allclose(np.asarray(mean[:2]), dx * np.asarray(offset[:2]), rtol=1e-6)  # M / W
+    assert np.all(np.abs(np.asarray(mean[2:])) <= dx * 1e-13)  # fades out below the floor
+
 
 # ----------------------------------------------------------------------------- thin plate
 
