@@ -833,12 +833,12 @@ class GhostNodes(eqx.Module):
     they been ordinary nodes they would have received only this particle's contribution
     ``w_i (m u + A (x_i - x_p))`` (``u = v_p + dt g``, ``A`` the MLS affine/stress matrix).
     Their mean velocity ``g = u + (A/m) M / W`` (``W = sum w_i``, ``M = sum w_i (x_i - x_p)``
-    over the incompatible nodes of collider ``c``; ``M / W`` by :func:`ghost_mean_offset`) is the particle's velocity against the
-    collider *including the push of its own stress*; it is projected once per particle and
-    collider — Coulomb friction mu_b, restitution ``e`` on the particle's own approach speed,
-    relative to the collider's velocity — and every incompatible node of ``c`` reads the
-    projected velocity ``P = proj(g)`` (as TM's CPIC reads a fake velocity built from the
-    particle's own). The collider's impulse on the particle is ``m W (P - g)``: it lies in the
+    over the incompatible nodes of collider ``c``; ``M / W`` by :func:`ghost_mean_offset`) is
+    the particle's velocity against the collider *including the push of its own stress*; it
+    is projected once per particle and collider — Coulomb friction mu_b, restitution ``e``
+    on the particle's own approach speed, relative to the collider's velocity — and every
+    incompatible node of ``c`` reads the projected velocity ``P = proj(g)`` (as TM's CPIC
+    reads a fake velocity built from the particle's own). The collider's impulse on the particle is ``m W (P - g)``: it lies in the
     friction cone of the particle's whole normal reaction, stress included, so a body sliding
     on a collider obeys ``a = g (sin θ - mu cos θ)`` and stops when ``tan θ < mu``.
 
