@@ -456,6 +456,8 @@ def residuals_and_jacobian(residuals: Callable, y0: dict):
 ESCAPE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
 #: At most this many such escapes per stage.
 MAX_ESCAPES = 4
+#: The verdicts of :func:`_gauss_newton_escape` that count as converged.
+STATIONARY = ("stationary", "floor")
 
 
 def _gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
@@ -470,6 +472,37 @@ def _gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
     return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
 
 
+#: Largest component of the probe step that measures a loss's round-off noise, relative to
+#: ``1 + |y|`` (optimisation units): far above float32's resolution, far below any fitted feature.
+NOISE_PROBE = 1e-4
+
+
+def _at_round_off_floor(rj, flat, delta) -> bool:
+    """Whether the Gauss–Newton step ``delta`` at ``flat`` promises less than the loss's own
+    round-off noise.
+
+    The step's predicted decrease is ``|J delta|^2`` (``delta`` solves the linear least
+    squares). The noise is measured, not assumed: a probe step ``t delta`` so short that its
+    second-order term is negligible changes the residuals by ``t J delta`` plus whatever the
+    rollout's round-off (amplified by contact and return-map switching) adds; that remainder
+    ``|r(y + t delta) - r(y) - t J delta|^2`` is the loss change noise alone causes. When the
+    promise is below it, no step can be told apart from noise: a stationary point at this
+    precision (the loss's floor), though the step itself may not be small in a poorly
+    determined direction.
+    """
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    y = np.asarray(flat, np.float64)
+    t = NOISE_PROBE * float(np.max((1.0 + np.abs(y)) / np.maximum(np.abs(delta), 1e-300)))
+    t = min(t, 1.0)
+    r_t = np.asarray(rj(jnp.asarray(y + t * delta, flat.dtype))[0], np.float64)
+    y_t = np.asarray(jnp.asarray(y + t * delta, flat.dtype), np.float64)  # the probe as rounded
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and np.all(np.isfinite(r_t))):
+        return False
+    noise = float(np.sum((r_t - r - J @ (y_t - y)) ** 2))
+    promised = float(np.sum((J @ delta) ** 2))
+    return promised <= noise
+
+
 def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
 
@@ -478,24 +511,29 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     the trend. Here the undamped Gauss–Newton step ``delta`` is computed from ``(r, J)`` at
     ``flat`` and tried at the lengths ``ESCAPE_STEPS``.
 
-    Returns ``(new_flat, new_loss)`` for the first length that lowers the loss, else
-    ``None, stationary`` (the test of :func:`_gauss_newton_step`).
+    Returns ``((new_flat, new_loss), "rough")`` for the first length that lowers the loss,
+    else ``(None, verdict)``: ``"stationary"`` (the test of :func:`_gauss_newton_step`),
+    ``"floor"`` (no length helped and the step promises less than the loss's round-off noise,
+    :func:`_at_round_off_floor`) or ``"rough"`` (stuck away from a stationary point).
     """
     delta, stationary = _gauss_newton_step(rj, flat, rtol)
-    if delta is None or stationary:
-        return None, stationary
+    if delta is None:
+        return None, "rough"
+    if stationary:
+        return None, "stationary"
     y = np.asarray(flat, np.float64)
     for alpha in ESCAPE_STEPS:
         trial = jnp.asarray(y + alpha * delta, flat.dtype)
         f_t = float(loss_of(trial))
         if np.isfinite(f_t) and f_t < f:
-            return (trial, f_t), False
-    return None, False
+            return (trial, f_t), "rough"
+    return None, "floor" if _at_round_off_floor(rj, flat, delta) else "rough"
 
 
 def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     """The stage message of both LM paths for how it stopped: ``"converged"`` (tolerance
-    test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"rough"``
+    test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"floor"``
+    (rejected steps at the loss's round-off floor), ``"rough"``
     (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
     (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
     point: converged)."""
@@ -504,6 +542,9 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
         "stationary": (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
                        "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
                        "at this precision)"),
+        "floor": (f"converged in {iterations} iterations (at the loss's round-off floor: no trial step lowered it "
+                  "and the Gauss-Newton step promises less than the loss's measured round-off noise; parameters "
+                  "in poorly determined directions are known only to their std)"),
         "rough": (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
                   "still large but neither the trust region nor a line search along it lowers the loss (a rough "
                   "loss at this precision; try float64, another starting point or method='adam')"),
@@ -526,7 +567,8 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     undamped Gauss–Newton step is within ``max(rtol, 1e-3) (1 + |y|)``. When it is not, the
     trust region collapsed on a rough loss: :func:`_gauss_newton_escape` tries that step (line
     search) and the solver restarts from the better point (at most ``MAX_ESCAPES`` times); failing that the
-    stage reports that it stalled, never that it converged.
+    stage has converged only if that step promises less than the loss's measured round-off
+    noise (:func:`_at_round_off_floor`), else it reports that it stalled.
     """
     rj, flat, unravel = residuals_and_jacobian(residuals, y0)
     r, J = (np.asarray(a, np.float64) for a in rj(flat))
@@ -538,7 +580,7 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     lam, nu = None, 2.0
     converged = stalled = unhealthy = False
     rejected = escapes = 0
-    stationary = False
+    verdict = "rough"
     loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if a stall needs it
     iterations = 0
     for iterations in range(1, max_steps + 1):
@@ -581,7 +623,7 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
             # At the loss's numerical floor no trial step can decrease it, so the damping
             # grows without the tolerance test ever passing: a stationary point too.
             if rejected >= MAX_REJECTED_STEPS:
-                found, stationary = _gauss_newton_escape(loss_of, rj, jnp.asarray(y, flat.dtype), f, rtol)
+                found, verdict = _gauss_newton_escape(loss_of, rj, jnp.asarray(y, flat.dtype), f, rtol)
                 if found is not None and escapes < MAX_ESCAPES:
                     escapes += 1
                     y = np.asarray(found[0], np.float64)
@@ -591,10 +633,10 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
                     lam, nu, rejected, unhealthy = None, 2.0, 0, False
                     continue
                 stalled = True
-                converged = stationary and not unhealthy
+                converged = verdict in STATIONARY and not unhealthy
                 break
     if stalled:
-        how = "unstable" if unhealthy else "stationary" if stationary else "rough"
+        how = "unstable" if unhealthy else verdict
     elif converged:
         how = "converged"
     else:  # the iteration limit; converged all the same if the Gauss-Newton step is within tolerance
@@ -607,15 +649,21 @@ def _run_lm(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _Stage
     return _StageOutcome(y_out, losses, iterations, converged, message, stalled and unhealthy, jacobian=(r, J))
 
 def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> _StageOutcome:
+    r0 = jax.jit(residuals)(y0)
+    if not bool(jnp.all(jnp.isfinite(r0))):
+        return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+    f0 = float(jnp.sum(r0**2))
+    # optimistix's trust region starts at damping 1 on the loss: residuals scaled to a unit
+    # starting loss make that comparable to J^T J, instead of first steps ~f0 times too short
+    # that take several iterations to grow (losses are reported unscaled)
+    scale = 1.0 / math.sqrt(f0) if 0.0 < f0 < math.inf else 1.0
+
     def fn(y, args):  # optimistix's solver interface: (residuals, aux)
-        return residuals(y), None
+        return residuals(y) * scale, None
 
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     options = {"jac": "fwd"}
     tags = frozenset()
-    r0 = jax.jit(residuals)(y0)
-    if not bool(jnp.all(jnp.isfinite(r0))):
-        return _StageOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
     f_struct = jax.eval_shape(lambda: r0)
     state = solver.init(fn, y0, None, options, f_struct, None, tags)
 
@@ -623,12 +671,12 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
     def advance(y, state):
         y, state, _ = solver.step(fn, y, None, options, state, tags)
         done, result = solver.terminate(fn, y, None, options, state, tags)
-        loss = jnp.sum(state.f_info.residual**2)
+        loss = jnp.sum(state.f_info.residual**2) / scale**2
         return y, state, done, result, loss
 
     y = y0
-    losses = [float(jnp.sum(r0**2))]
-    converged, stalled, stationary, iterations = False, False, False, 0
+    losses = [f0]
+    converged, stalled, verdict, iterations = False, False, "rough", 0
     escape_tools, escapes, fresh = None, 0, True
     succeeded = False
     for iterations in range(1, max_steps + 1):
@@ -648,7 +696,8 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         # optimistix's Cauchy test (small step AND small loss change) also passes when its
         # trust region has collapsed on a rough loss far from a minimum; and at the loss's
         # numerical floor the region shrinks without the test ever passing. Both end here:
-        # a stationary point only if the undamped Gauss-Newton step is within tolerance.
+        # a stationary point only if the undamped Gauss-Newton step is within tolerance or
+        # promises less than the loss's round-off noise (_gauss_newton_escape's verdicts).
         if succeeded or int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
             if escape_tools is None:
                 rj, _, unravel = residuals_and_jacobian(residuals, y)
@@ -656,7 +705,7 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
                 escape_tools = (rj, unravel, loss_of)
             rj, unravel, loss_of = escape_tools
             flat = jax.flatten_util.ravel_pytree(y)[0]
-            found, stationary = _gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol)
+            found, verdict = _gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol)
             if found is not None and escapes < MAX_ESCAPES:
                 escapes += 1
                 y = unravel(found[0])
@@ -665,7 +714,7 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
                 fresh = True
                 continue
             stalled = not succeeded
-            converged = stationary
+            converged = verdict in STATIONARY
             break
     # optimistix returns the last *accepted* point as y (trial points live in the state).
     unhealthy = False
@@ -675,9 +724,9 @@ def _run_lm_optimistix(residuals, y0, *, max_steps, rtol, atol, progress, offset
         if unhealthy:
             converged = False
     if stalled:
-        how = "unstable" if unhealthy else "stationary" if stationary else "rough"
+        how = "unstable" if unhealthy else verdict
     elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
-        how = "converged" if converged else "rough"
+        how = {"stationary": "converged", "floor": "floor"}.get(verdict, "rough")
     elif iterations >= max_steps:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
         rj = residuals_and_jacobian(residuals, y)[0] if escape_tools is None else escape_tools[0]
         converged = _gauss_newton_step(rj, jax.flatten_util.ravel_pytree(y)[0], rtol)[1]
