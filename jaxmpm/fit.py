@@ -492,8 +492,8 @@ def _at_round_off_floor(rj, flat, delta) -> bool:
     """
     r, J = (np.asarray(a, np.float64) for a in rj(flat))
     y = np.asarray(flat, np.float64)
-    t = NOISE_PROBE * float(np.max((1.0 + np.abs(y)) / np.maximum(np.abs(delta), 1e-300)))
-    t = min(t, 1.0)
+    # the step's largest component, relative to 1 + |y|, becomes NOISE_PROBE
+    t = min(NOISE_PROBE / max(float(np.max(np.abs(delta) / (1.0 + np.abs(y)))), 1e-300), 1.0)
     r_t = np.asarray(rj(jnp.asarray(y + t * delta, flat.dtype))[0], np.float64)
     y_t = np.asarray(jnp.asarray(y + t * delta, flat.dtype), np.float64)  # the probe as rounded
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and np.all(np.isfinite(r_t))):

@@ -197,6 +197,26 @@ def test_round_off_floor_is_recognised_only_where_the_gauss_newton_step_promises
         assert _at_round_off_floor(rj, flat, delta) == floor, (start, noise)
 
 
+def test_round_off_probe_is_short_in_every_parameter():
+    """Far from the minimum of a strongly nonlinear residual, with a second parameter already
+    at its optimum (its Gauss-Newton component ~0): the probe must be short along the step's
+    largest component, else the curvature of the full step reads as noise (a false floor)."""
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from jaxmpm.fit import _at_round_off_floor, _gauss_newton_step, residuals_and_jacobian
+
+    def residuals(y):
+        return jnp.concatenate([jnp.full(50, jnp.exp(y["a"]) - jnp.exp(3.0)), jnp.full(50, y["b"] - 1.0)])
+
+    y = {"a": jnp.asarray(0.0, jnp.float64), "b": jnp.asarray(1.0, jnp.float64)}
+    rj, _, _ = residuals_and_jacobian(residuals, y)
+    flat = jax.flatten_util.ravel_pytree(y)[0]
+    delta, small = _gauss_newton_step(rj, flat, 1e-5)
+    assert not small and abs(delta[1]) < 1e-12 < abs(delta[0])
+    assert not _at_round_off_floor(rj, flat, delta)
+
+
 @pytest.mark.parametrize("path", ["_run_lm", "_run_lm_optimistix"])
 def test_lm_at_the_iteration_limit_is_converged_only_at_a_stationary_point(path):
     """A stage cut off by ``max_steps`` with the undamped Gauss-Newton step within
