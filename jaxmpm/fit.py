@@ -465,9 +465,13 @@ def _gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
     not finite) and whether every component of it is within ``max(rtol, 1e-3) (1 + |y|)`` in
     optimisation units (decades, degrees, m/s): a stationary point at this precision."""
     r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    return _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
+
+
+def _gauss_newton_from(r, J, y, rtol) -> tuple[np.ndarray | None, bool]:
+    """:func:`_gauss_newton_step` from residuals ``r`` and Jacobian ``J`` already evaluated at ``y``."""
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
         return None, False
-    y = np.asarray(flat, np.float64)
     delta = np.linalg.lstsq(J, -r, rcond=None)[0]
     return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
 
@@ -477,7 +481,7 @@ def _gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
 NOISE_PROBE = 1e-4
 
 
-def _at_round_off_floor(rj, flat, delta) -> bool:
+def _at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
     """Whether the Gauss–Newton step ``delta`` at ``flat`` promises less than the loss's own
     round-off noise.
 
@@ -488,9 +492,10 @@ def _at_round_off_floor(rj, flat, delta) -> bool:
     ``|r(y + t delta) - r(y) - t J delta|^2`` is the loss change noise alone causes. When the
     promise is below it, no step can be told apart from noise: a stationary point at this
     precision (the loss's floor), though the step itself may not be small in a poorly
-    determined direction.
+    determined direction. ``r, J`` at ``flat`` are evaluated unless given.
     """
-    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    if r is None or J is None:
+        r, J = (np.asarray(a, np.float64) for a in rj(flat))
     y = np.asarray(flat, np.float64)
     # the step's largest component, relative to 1 + |y|, becomes NOISE_PROBE
     t = min(NOISE_PROBE / max(float(np.max(np.abs(delta) / (1.0 + np.abs(y)))), 1e-300), 1.0)
@@ -516,7 +521,8 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
     ``"floor"`` (no length helped and the step promises less than the loss's round-off noise,
     :func:`_at_round_off_floor`) or ``"rough"`` (stuck away from a stationary point).
     """
-    delta, stationary = _gauss_newton_step(rj, flat, rtol)
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    delta, stationary = _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
     if delta is None:
         return None, "rough"
     if stationary:
@@ -527,7 +533,7 @@ def _gauss_newton_escape(loss_of, rj, flat, f, rtol):
         f_t = float(loss_of(trial))
         if np.isfinite(f_t) and f_t < f:
             return (trial, f_t), "rough"
-    return None, "floor" if _at_round_off_floor(rj, flat, delta) else "rough"
+    return None, "floor" if _at_round_off_floor(rj, flat, delta, r, J) else "rough"
 
 
 def _lm_message(how: str, iterations: int, max_steps: int) -> str:
