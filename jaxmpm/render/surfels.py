@@ -73,9 +73,9 @@ from .volume import (
     Rendered,
     _finish,
     _prepare,
+    composite,
     estimate_spacing,
     map_pixel_chunks,
-    safe_divide,
 )
 
 _COS_MIN = 1e-4
@@ -401,14 +401,7 @@ class SurfelRenderer(AbstractRenderer):
         def pair_fn(surf, pix):
             terms, opac, colors = surf
             alpha, z = self._alpha_and_depth(terms, opac, camera, pix)
-            log_keep = jnp.log1p(-alpha)
-            csum = jnp.cumsum(log_keep, axis=-1)
-            w = alpha * jnp.exp(csum - log_keep)
-            t_final = jnp.exp(csum[:, -1])
-            acc = 1.0 - t_final
-            rgb = w @ colors + t_final[:, None] * bg
-            depth = safe_divide(jnp.sum(w * z, axis=-1), acc)
-            return Rendered(rgb, acc, depth)
+            return composite(alpha, jnp.log1p(-alpha), z, lambda w: w @ colors, bg)
 
         out = self._pixel_loop(pair_fn, (terms, opac, colors), boxes, camera, pixels)
         return _finish(out, camera, pixels)

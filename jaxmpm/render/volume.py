@@ -178,6 +178,28 @@ def safe_divide(num, den, eps=_EPS):
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
+def composite(alpha, log_keep, z, blend, background) -> Rendered:
+    """Front-to-back alpha compositing of ``K`` depth-ordered samples along each of ``R`` rays.
+
+    Arguments:
+        alpha: ``(R, K)`` opacity of each sample.
+        log_keep: ``(R, K)`` ``log(1 − alpha)`` (passed in so callers keep its stable form).
+        z: ``(R, K)`` camera depth of each sample (m).
+        blend: ``blend(w) -> (R, 3)``, the colour sum of the compositing weights ``w (R, K)``.
+        background: ``(3,)`` colour behind the last sample.
+
+    Returns:
+        :class:`Rendered` with rgb ``(R, 3)``, alpha ``1 − Π(1 − alpha_k)`` ``(R,)`` and the
+        weight-averaged depth ``(R,)`` (0 where nothing is hit).
+    """
+    csum = jnp.cumsum(log_keep, axis=-1)
+    w = alpha * jnp.exp(csum - log_keep)  # opacity × exclusive transmittance
+    t_final = jnp.exp(csum[:, -1])
+    acc = 1.0 - t_final
+    rgb = blend(w) + t_final[:, None] * background
+    return Rendered(rgb, acc, safe_divide(jnp.sum(w * z, axis=-1), acc))
+
+
 def estimate_spacing(positions, max_samples: int = 2048, seed: int = 0) -> float:
     """Median nearest-neighbour distance of a particle set (NumPy, concrete input).
 
@@ -386,16 +408,8 @@ class VolumeRenderer(AbstractRenderer):
         else:
             delta = ((t1 - t0) / (S - 1))[:, None]
             log_keep = -self.density * occ * delta
-        alpha_k = -jnp.expm1(log_keep)
-        csum = jnp.cumsum(log_keep, axis=-1)
-        trans = jnp.exp(csum - log_keep)  # exclusive transmittance
-        w = alpha_k * trans
-        t_final = jnp.exp(csum[:, -1])
         bg = jnp.asarray(self.background, dtype=dtype)
-        rgb = jnp.sum(w[..., None] * color, axis=1) + t_final[:, None] * bg
-        alpha = 1.0 - t_final
-        depth = safe_divide(jnp.sum(w * z, axis=-1), alpha)
-        return Rendered(rgb, alpha, depth)
+        return composite(-jnp.expm1(log_keep), log_keep, z, lambda w: jnp.sum(w[..., None] * color, axis=1), bg)
 
     def render(
         self,
