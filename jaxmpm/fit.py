@@ -12,7 +12,9 @@ weighted loss of :mod:`jaxmpm.losses` (tracks, silhouettes, masked RGB, probes):
 * ``"bfgs"``: ``optimistix.BFGS`` on the scalar loss (forward-mode gradients).
 
 **Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone from
-the pre-contact frames, when a ``velocity`` is among the names; (2) the other parameters on
+the pre-contact frames, when a ``velocity`` is among the names (without per-particle tracks,
+whose contact is found in a rollout of the guess, first from the first observed interval,
+then again from the frames before the contact of that velocity); (2) the other parameters on
 the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A stage whose
 rollout is unhealthy (NaN, CFL number above ``cfl_limit``) at its starting point, or whose
 solver stalls against unhealthy trial points, halves dt (doubles the substeps) and restarts
@@ -34,7 +36,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import equinox as eqx
@@ -316,6 +318,22 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
     return float(before[-1]) if len(before) else 0.0
 
 
+def _first_interval_stage(stage: Stage, times, frame_dt: float) -> Stage:
+    """``stage`` (a velocity stage) shortened to the first observed interval.
+
+    Without per-particle tracks, contact is found in a rollout of the initial guess, which
+    (typically dropped from rest) lands later than the truth; fitted on that window the
+    velocity also sees frames after the true contact, which it cannot explain, and takes
+    many iterations. The first interval is almost always before contact and enough to pin
+    the velocity; :func:`fit` then re-detects contact with it and refits on the frames before.
+    """
+    t = np.sort(np.asarray(times, float))
+    first = t[t > 0]
+    if not len(first) or first[0] >= stage.until - 1e-3 * frame_dt:
+        return stage
+    return replace(stage, until=float(first[0]), label=f"velocity (first observed interval, t <= {first[0]:.4g} s)")
+
+
 def plan_stages(
     model: Model,
     params: Params,
@@ -451,6 +469,10 @@ def residuals_and_jacobian(residuals: Callable, y0: dict):
 
     return rj, flat0, unravel
 
+
+#: Velocity refits after the first velocity stage when contact is re-detected with each fitted
+#: velocity (images or untracked points; see :func:`_first_interval_stage`).
+MAX_VELOCITY_REFITS = 3
 
 #: Step lengths tried along the Gauss–Newton direction when the trust region has collapsed.
 ESCAPE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
@@ -1005,10 +1027,14 @@ def fit(
                 raise JaxmpmError(f"stage {s.label or s.names}: {unknown} are not among the fitted names {names}")
     for note in notes:
         say(note)
-    # contact found in a rollout of the initial guess: re-detect it with the fitted velocity
     vel_names = [n for n in names if _leaf(n) == "velocity"]
+    # contact found in a rollout of the initial guess: re-detect it after each velocity stage
     replan = (stages == "auto" and velocity_until is None and bool(vel_names)
               and not (observation.positions is not None and observation.point_ids == "particles"))
+    t_guess = plan[0].until if replan and plan[0].names == vel_names else None
+    if t_guess is not None:
+        plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
+    replans_left = MAX_VELOCITY_REFITS if t_guess is not None else 0
 
     y_all = {n: to_unconstrained(n, jnp.asarray(v, _float_dtype())) for n, v in initial.items()}
     halvings_left = max_dt_halvings
@@ -1091,17 +1117,25 @@ def fit(
             stage_std = _gauss_newton_std(res, {n: y_all[n] for n in snames}, snames, objective.count,
                                           rj=outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
-        if replan and si == 0 and stage.until is not None and set(snames) == set(vel_names):
-            replan = False
+        if replans_left and stage.until is not None and set(snames) == set(vel_names):
+            replans_left -= 1
             now = apply_unconstrained(model, params, list(y_all), y_all)
             t_new = contact_time(model, now, observation)
-            if t_new is not None and 0 < t_new < stage.until - 1e-3 * model.frame_dt:
-                rest, _ = plan_stages(model, now, observation, names, velocity_until=t_new,
-                                      warmup_frames=warmup_frames, refine_velocity=refine_velocity)
-                plan[si + 1:] = rest
-                last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
-                notes.append(f"with the fitted velocity the body touches by t = {t_new:.4g} s, earlier than in the "
-                             "initial guess's rollout: the velocity is refitted on the shorter window")
+            t_c = t_new if t_new is not None else t_guess
+            rest, _ = plan_stages(model, now, observation, names, velocity_until=t_c,
+                                  warmup_frames=warmup_frames, refine_velocity=refine_velocity)
+            same_window = abs(t_c - stage.until) <= 1e-3 * model.frame_dt
+            if same_window and rest and rest[0].names == vel_names:
+                rest = rest[1:]  # the velocity was just fitted on exactly this window
+            plan[si + 1:] = rest
+            last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+            if t_c <= 1e-3 * model.frame_dt:
+                notes.append("with the fitted velocity the body is in contact from the first frames: the velocity "
+                             "is refitted with the other parameters")
+            elif not same_window:
+                notes.append(f"with the fitted velocity the body touches by t = {t_c:.4g} s: the velocity is "
+                             "refitted on the frames before that")
+            if t_c <= 1e-3 * model.frame_dt or not same_window:
                 say(notes[-1])
 
     final_params = apply_unconstrained(model, params, names, y_all)

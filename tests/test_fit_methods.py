@@ -126,17 +126,23 @@ def test_truth_lies_within_a_few_sigma_with_noisy_tracks():
 @pytest.mark.slow
 def test_contact_redetected_with_the_fitted_velocity():
     """Without per-particle tracks the contact comes from a rollout of the initial guess
-    (dropped from rest, it lands later than the truth thrown downwards); after the velocity
-    stage the fit re-detects contact and refits the velocity on the shorter window."""
+    (dropped from rest, it lands later than the truth thrown downwards). The fit therefore
+    fits the velocity on the first observed interval, re-detects contact with it and refits
+    the velocity on the frames before that contact."""
     spec = _spec(lo=(0.3, 0.4), hi=(0.5, 0.56), velocity=(0.5, -2.0), frames=7)
     truth = _observe(spec)
     obs = Observation(times=truth.times, positions=truth.positions)  # Chamfer: no correspondence
     start = load_scene(_spec(mu=20.0, lo=(0.3, 0.4), hi=(0.5, 0.56), velocity=(0.0, 0.0), frames=7))
     logs = []
     result = fit(start.model, start.params, obs, ["mu", "velocity"], log=logs.append)
-    assert any("refitted on the shorter window" in line for line in logs), logs
+    t_guess = contact_time(start.model, start.params, obs)
+    t_true = contact_time(start.model, load_scene(spec).params, obs)
+    assert t_true < t_guess  # what makes the guess's window wrong
     velocity_stages = [s for s in result.stages if s["names"] == ["velocity"]]
-    assert len(velocity_stages) == 2 and velocity_stages[1]["until"] < velocity_stages[0]["until"]
+    assert velocity_stages[0]["until"] == pytest.approx(obs.times[1]) and obs.times[1] < t_true
+    assert any("refitted on the frames before that" in line for line in logs), logs
+    # the last velocity window is the truth's pre-contact window
+    assert 2 <= len(velocity_stages) <= 4 and velocity_stages[-1]["until"] == pytest.approx(t_true)
     # (Chamfer distances between lattices are nearly periodic in a shift of one particle
     # spacing, so a one-frame window pins the velocity only to ~0.2 m/s; from 2.1 m/s off)
     np.testing.assert_allclose(result.values["velocity"], [0.5, -2.0], atol=0.25)
