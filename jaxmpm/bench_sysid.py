@@ -428,6 +428,30 @@ def targets(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def sigma_check(rows: list[dict]) -> str:
+    """How far the truth lies from each estimate in units of its reported Gauss–Newton σ,
+    ``|estimate − truth| / σ`` per fitted parameter, by supervision, mode and convergence:
+    count, median, how many within 3σ. (The benchmark's observations are noise-free, so σ
+    reflects round-off and misfit, not an error bar; see docs/fitting.md.)"""
+    groups: dict[tuple, list[float]] = {}
+    for r in rows:
+        if "error" in r:
+            continue
+        for p in r["errors"]:
+            sd = r.get("std", {}).get(p)
+            if sd is None or not np.isscalar(sd) or not sd > 0:
+                continue
+            z = abs(float(r["estimate"][p]) - float(r["truth"][p])) / float(sd)
+            key = (r["case"]["supervision"], r["case"]["mode"], "converged" if r["converged"] else "not converged")
+            groups.setdefault(key, []).append(z)
+    out = []
+    for (sup, mode, conv), zs in sorted(groups.items()):
+        z = np.asarray(zs)
+        out.append(f"* {sup}, {mode}, {conv}: {len(z)} parameter estimates, truth at a median of "
+                   f"{np.median(z):.3g} σ (max {z.max():.3g}); {int(np.sum(z <= 3))} within 3σ")
+    return "\n".join(out)
+
+
 def run_sysid_bench(argv: list[str] | None = None) -> int:
     """Entry point of ``jaxmpm bench sysid`` (see the module docstring). Returns an exit code."""
     parser = argparse.ArgumentParser(prog="jaxmpm bench sysid", description=__doc__,
@@ -477,7 +501,8 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
                   f"{'converged' if row['converged'] else 'NOT converged'}", file=sys.stderr, flush=True)
     rows = [done[c.key] for c in cases if c.key in done]
     table = summarise(rows)
-    text = (f"preset {args.preset}: {asdict(preset)}\n\n{table}\n\nTargets:\n{targets(rows)}\n")
+    text = (f"preset {args.preset}: {asdict(preset)}\n\n{table}\n\nTargets:\n{targets(rows)}\n\n"
+            f"Truth against the reported σ:\n{sigma_check(rows)}\n")
     (out / "table.md").write_text(text)
     print(text)
     return 0 if rows and all("error" not in r for r in rows) else 1

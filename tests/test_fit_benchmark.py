@@ -5,7 +5,8 @@ import json
 
 import pytest
 
-from jaxmpm.bench_sysid import Case, errors, preset_cases, run_sysid_bench, scene_spec, summarise, targets, truth_values
+from jaxmpm.bench_sysid import (Case, errors, preset_cases, run_sysid_bench, scene_spec, sigma_check, summarise, targets,
+                                truth_values)
 from jaxmpm.scene import load_scene
 
 
@@ -47,6 +48,16 @@ def test_summary_table_and_targets():
                        {"case": row["case"], "key": "bad", "error": "boom"}])
     assert "| tracks | cpic | sand | box | 2 | 1/2 |" in table and "0.30 ± 0.10" in table and "boom" in table
     assert "1/2 cases within 0.3" in targets([row, dict(row, errors={"friction_angle": 0.4})])
+
+
+def test_sigma_check_counts_the_truth_within_three_sigma():
+    case = {"material": "newtonian", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"}
+    row = {"case": case, "key": "k", "converged": True, "errors": {"mu": 0.01, "kappa": 0.1},
+           "truth": {"mu": 100.0, "kappa": 1e4}, "estimate": {"mu": 102.0, "kappa": 1.5e4},
+           "std": {"mu": 1.0, "kappa": 1e3, "velocity": [0.1, 0.1, 0.1]}}
+    text = sigma_check([row, {"case": case, "key": "bad", "error": "boom"}])
+    # mu: 2 sigma away, kappa: 5 sigma away; the velocity (no truth) is not counted
+    assert text == "* tracks, cpic, converged: 2 parameter estimates, truth at a median of 3.5 σ (max 5); 1 within 3σ"
 
 
 def test_ci_preset_runs_end_to_end(tmp_path):
