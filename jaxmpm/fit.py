@@ -1028,11 +1028,13 @@ def fit(
     for note in notes:
         say(note)
     vel_names = [n for n in names if _leaf(n) == "velocity"]
-    # contact found in a rollout of the initial guess: re-detect it after each velocity stage
-    replan = (stages == "auto" and velocity_until is None and bool(vel_names)
-              and not (observation.positions is not None and observation.point_ids == "particles"))
-    t_guess = plan[0].until if replan and plan[0].names == vel_names else None
-    if t_guess is not None:
+    eps = 1e-3 * model.frame_dt  # observed times may be float32
+    # contact found in a rollout of the initial guess (no per-particle tracks): the velocity
+    # starts on the first observed interval and contact is re-detected after each velocity stage
+    t_guess = None
+    if (stages == "auto" and velocity_until is None and vel_names and plan[0].names == vel_names
+            and not (observation.positions is not None and observation.point_ids == "particles")):
+        t_guess = plan[0].until
         plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
     replans_left = MAX_VELOCITY_REFITS if t_guess is not None else 0
 
@@ -1124,18 +1126,18 @@ def fit(
             t_c = t_new if t_new is not None else t_guess
             rest, _ = plan_stages(model, now, observation, names, velocity_until=t_c,
                                   warmup_frames=warmup_frames, refine_velocity=refine_velocity)
-            same_window = abs(t_c - stage.until) <= 1e-3 * model.frame_dt
+            same_window = abs(t_c - stage.until) <= eps
             if same_window and rest and rest[0].names == vel_names:
                 rest = rest[1:]  # the velocity was just fitted on exactly this window
             plan[si + 1:] = rest
             last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
-            if t_c <= 1e-3 * model.frame_dt:
+            if t_c <= eps:
                 notes.append("with the fitted velocity the body is in contact from the first frames: the velocity "
                              "is refitted with the other parameters")
+                say(notes[-1])
             elif not same_window:
                 notes.append(f"with the fitted velocity the body touches by t = {t_c:.4g} s: the velocity is "
                              "refitted on the frames before that")
-            if t_c <= 1e-3 * model.frame_dt or not same_window:
                 say(notes[-1])
 
     final_params = apply_unconstrained(model, params, names, y_all)
