@@ -80,7 +80,7 @@ def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2
 
 def gauge_probes(dx: float, half: bool = True):
     """Gauge heights on the centre line: the highest water within one cell of the gauge."""
-    from jaxmpm.losses import gauge
+    from jaxmpm.identify import gauge
 
     z = 0.5 if half else 0.5
     return {f"gauge_{k}": gauge(x, z, width=2.0 * dx) for k, x in GAUGES.items()}

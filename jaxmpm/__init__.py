@@ -5,7 +5,8 @@ The public API is re-exported here; private module names may change.
 
 from . import constitutive as constitutive
 from . import extensions as extensions
-from . import losses as losses
+from . import identify as identify
+from . import parameters as parameters
 from . import render as render
 from .colliders import Box as Box
 from .colliders import Collider as Collider
@@ -30,11 +31,13 @@ from .errors import JaxmpmError as JaxmpmError
 from .errors import ObservationError as ObservationError
 from .errors import SceneError as SceneError
 from .errors import SimulationError as SimulationError
+from .fit import FitConfig as FitConfig
 from .fit import FitResult as FitResult
 from .fit import fit as fit
 from .fit import fit_scene as fit_scene
-from .losses import build_objective as build_objective
+from .identify import build_objective as build_objective
 from .model import Body as Body
+from .parameters import Parameter as Parameter
 from .model import Model as Model
 from .model import initial_state as initial_state
 from .observe import Observation as Observation

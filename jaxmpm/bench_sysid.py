@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .constitutive import MATERIALS as MATERIAL_CLASSES
+
 MATERIALS = ("newtonian", "viscoplastic", "sand", "elastic", "plasticine")
 COLLIDERS = ("box", "bunny", "armadillo")
 MODES = ("cpic", "grid", "particles")
@@ -52,14 +54,9 @@ FIT_NAMES = {
     "plasticine": ["E", "nu", "yield_stress"],
 }
 
-#: PAC-NeRF's initial guesses for its 45-sequence batch (anchors §1.8).
-INITIAL_GUESS = {
-    "newtonian": {"mu": 10.0, "kappa": 1e4},
-    "viscoplastic": {"mu": 100.0, "kappa": 1e5, "yield_stress": 10.0, "eta": 1.0},
-    "sand": {"friction_angle": 10.0},
-    "elastic": {"E": 10**5.5, "nu": 0.25},
-    "plasticine": {"E": 1e4, "nu": 0.25, "yield_stress": 1e3},
-}
+#: PAC-NeRF's initial guesses for its 45-sequence batch (anchors §1.8), as each material declares them.
+INITIAL_GUESS = {m: {p.name: p.guess for p in MATERIAL_CLASSES[m].parameters if p.name in FIT_NAMES[m]}
+                 for m in MATERIALS}
 
 #: Ranges of the ground-truth parameter sets (log-uniform for log10 parameters), around
 #: PAC-NeRF's / GIC's ground truths, limited so that the explicit time step stays stable at
@@ -230,7 +227,7 @@ def rig(preset: Preset):
 
 def errors(names, estimate: dict, truth: dict) -> dict:
     """|Δlog10| for log10 parameters, |Δ| (degrees for the friction angle, raw for ν)."""
-    from .fit import LOG10_PARAMS
+    from .identify.parameters import LOG10_PARAMS
 
     out = {}
     for n in names:
@@ -266,8 +263,8 @@ def run_case(case: Case, preset: Preset) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row."""
     import jax.numpy as jnp
 
-    from .fit import fit
-    from .losses import make_fit_renderer
+    from .fit import FitConfig, fit
+    from .identify.residuals import make_fit_renderer
     from .observe import Observation
     from .render import render_views
     from .scene import load_scene
@@ -299,8 +296,8 @@ def run_case(case: Case, preset: Preset) -> dict:
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
-    result = fit(start.model, start.params, obs, names, weights=weights, max_steps=preset.max_steps,
-                 num_pixels=preset.pixels, colors=None, **fit_reporters(t0))
+    config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None)
+    result = fit(start.model, start.params, obs, names, config, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
     v_err = float(np.linalg.norm(np.asarray(result.values["velocity"], float) - np.asarray(v0)))

@@ -104,14 +104,15 @@ def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None
 
 
 def cmd_fit(args) -> int:
-    from .fit import default_names, fit_scene, parse_weights
+    from .fit import FitConfig, fit_scene
+    from .identify.parameters import check_names, default_names
     from .observe import load_observation
     from .scene import load_scene
 
     _check_output(args.out)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
-    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else default_names(scene.model)
+    names = check_names([n.strip() for n in args.params.split(",")]) if args.params else default_names(scene.model)
     weights = parse_weights(args.weights)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames) with {args.method}",
@@ -121,11 +122,11 @@ def cmd_fit(args) -> int:
         if not args.quiet:
             print(f"  iteration {i:3d}  loss {loss:.4e}", file=sys.stderr, flush=True)
 
-    result = fit_scene(
-        scene, obs, names, method=args.method, stages=None if args.stages == "single" else "auto",
-        weights=weights, max_steps=args.max_steps, progress=progress, log=say, renderer=args.renderer,
-        num_pixels=args.pixels, velocity_until=args.velocity_until,
-    )
+    config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
+                       max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
+                       velocity_until=args.velocity_until)
+    config.check()
+    result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     _write_json(Path(args.out), payload)
     print(_format_table(result))
@@ -136,15 +137,6 @@ def cmd_fit(args) -> int:
           "with \"converged\": false", file=sys.stderr)
     print(f"NOT CONVERGED: {result.message}; wrote {args.out}")
     return 1
-
-
-def _default_names(scene) -> list[str]:
-    """The material parameters that PAC-NeRF fits for the first body's model."""
-    from .constitutive import MATERIALS
-
-    if len(scene.model.bodies) != 1:
-        raise JaxmpmError("this scene has several bodies: name the parameters with --params")
-    return list(MATERIALS[type(scene.model.bodies[0].material).name].required)
 
 
 def _format_table(result, truth: dict | None = None) -> str:
@@ -170,12 +162,31 @@ def _fmt(v) -> str:
 
 
 def _error_text(name, value, truth) -> str:
-    from .fit import LOG10_PARAMS, _leaf
+    from .identify.parameters import transform_of
+    from .parameters import Log10
 
     value, truth = np.asarray(value, float), np.asarray(truth, float)
-    if _leaf(name) in LOG10_PARAMS:
+    if isinstance(transform_of(name), Log10):
         return f"|dlog10| = {float(np.max(np.abs(np.log10(value) - np.log10(truth)))):.4f}"
     return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
+
+
+def parse_weights(text: str | None) -> dict | None:
+    """``"tracks=1,silhouette=0.5"`` -> ``{"tracks": 1.0, "silhouette": 0.5}``."""
+    if not text:
+        return None
+    out = {}
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        key, sep, value = item.partition("=")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            raise JaxmpmError(f"--weights: expected name=number pairs (e.g. tracks=1,silhouette=0.5), got {item!r}") from None
+        if not sep:
+            raise JaxmpmError(f"--weights: expected name=number pairs, got {item!r}")
+    return out
 
 
 # --------------------------------------------------------------------------- discover

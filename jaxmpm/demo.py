@@ -67,13 +67,8 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     guess["bodies"] = [dict(spec["bodies"][0], material={"model": "newtonian", "density": 1000.0, **INITIAL_GUESS})]
     start = load_scene(guess)
     say(f"[2/3] identifying mu, kappa from the tracks, starting from PAC-NeRF's guess {INITIAL_GUESS}")
-    result = fit(
-        start.model,
-        start.params,
-        obs,
-        ["mu", "kappa"],
-        progress=lambda i, loss: say(f"      iteration {i:3d}  loss {loss:.3e} m^2"),
-    )
+    result = fit(start.model, start.params, obs, ["mu", "kappa"],
+                 progress=lambda i, loss: say(f"      iteration {i:3d}  loss {loss:.3e} m^2"))
     fitted = np.asarray(run_frames(start.model.with_substeps(result.substeps), result.params).x)
 
     say("[3/3] writing results")

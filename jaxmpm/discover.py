@@ -47,7 +47,10 @@ import numpy as np
 
 from . import extensions as X
 from .errors import JaxmpmError, ObservationError
-from .fit import LOG10_PARAMS, _leaf, from_unconstrained, get_param, resolve_name, set_param, to_unconstrained
+from .identify.parameters import from_unconstrained, get_param, resolve_name, set_param, to_unconstrained, transform_of
+from .identify.residuals import chamfer_residuals, check_tracks, probe_function
+from .identify.solvers import bounded_levenberg_marquardt
+from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation
 from .step import simulate
@@ -117,7 +120,7 @@ def default_parameters(model: Model) -> list[str]:
     names = []
     several = len(model.bodies) > 1
     for body in model.bodies:
-        for p in type(body.material).required:
+        for p in type(body.material).required():
             if p == "kappa":
                 continue
             names.append(f"{body.name}.{p}" if several else p)
@@ -186,8 +189,6 @@ class _TrackResiduals(_Observable):
         if self.by_id:
             r = jnp.where(self.valid[..., None], x - self.target, 0.0)
             return (self.scale[:, None, None] * r).reshape(-1)
-        from .losses import chamfer_residuals
-
         r = jax.vmap(chamfer_residuals)(x, self.target, self.valid)
         return (self.scale[:, None] * r).reshape(-1)
 
@@ -262,25 +263,6 @@ def _obs_jvp(obs, X, V, t0, dX, dV, dt0):
     return jax.jvp(obs.residuals, (X, V, t0), (dX, dV, dt0))
 
 
-def _probe_fn(name: str, extra):
-    """A probe function by name: jaxmpm.losses' registry when available, else built-ins."""
-    if extra and name in extra:
-        return extra[name]
-    try:
-        from .losses import probe_function
-
-        return probe_function(name, extra)
-    except ImportError:  # pragma: no cover - losses not available
-        pass
-    import re
-
-    m = re.fullmatch(r"front_([xyz])", name)
-    if m:
-        a = "xyz".index(m.group(1))
-        return lambda st, model: jnp.max(st.x[:, a]) + 0.5 * jnp.max(st.vol0) ** (1.0 / st.dim)
-    raise ObservationError(f"unknown probe {name!r}; pass probes={{{name!r}: fn(state, model)}}")
-
-
 @dataclass
 class _Groups:
     """Per residual entry its group; per group its time, kind, view and sequence."""
@@ -293,8 +275,6 @@ class _Groups:
 
 
 def _track_observable(model, obs: Observation, dtype):
-    from .losses import check_tracks
-
     pos = np.asarray(obs.positions, float)
     T, N, D = pos.shape
     by_id = check_tracks(model, pos, obs.point_ids)
@@ -322,7 +302,7 @@ def _probe_observable(model, params, obs: Observation, extra, dtype, frame_dt):
     from .model import initial_state
 
     names = list(obs.probe_names)
-    fns = tuple(_probe_fn(n, extra) for n in names)
+    fns = tuple(probe_function(n, extra) for n in names)
     pt = np.asarray(obs.probe_times, float)
     pv = np.asarray(obs.probe_values, float)
     valid = np.isfinite(pt) & np.isfinite(pv) & (pt >= 0)
@@ -511,12 +491,7 @@ class _Problem:
             if shape is None:
                 raise JaxmpmError(f"parameter {n!r} names nothing in any sequence")
             size = int(np.prod(shape)) if shape else 1
-            lo, hi = -np.inf, np.inf
-            if _leaf(n) == "nu":  # keep the tanh map out of saturation (where its slope vanishes)
-                from .fit import NU_BOUNDS
-
-                mid, half = (NU_BOUNDS[0] + NU_BOUNDS[1]) / 2, (NU_BOUNDS[1] - NU_BOUNDS[0]) / 2
-                lo, hi = mid - 2.5 * half, mid + 2.5 * half
+            lo, hi = transform_of(n).bounds()  # e.g. the tanh-bounded nu: out of saturation
             self.entries.append(_Entry(n, "base", size, shape, np.full(size, lo), np.full(size, hi)))
             self.paths.append(paths)
         seen = {}
@@ -543,20 +518,15 @@ class _Problem:
             i += en.size
         self.size = i
         self.lower = np.concatenate([en.lower for en in self.entries])
-        #: largest change per LM iteration (optimisation space): a decade for log10 parameters,
-        #: 0.5 for nu, 10 typical magnitudes for extension offsets, else 10 times the value
+        #: largest change per LM iteration (optimisation space): 10 typical magnitudes for
+        #: extension offsets, else what the parameter's fitting space allows (Transform.max_step)
         caps = []
         for en in self.entries:
             if en.kind == "ext":
                 caps.append(np.full(en.size, 10.0 * en.spec.scale))
-            elif _leaf(en.name) in LOG10_PARAMS:
-                caps.append(np.ones(en.size))
-            elif _leaf(en.name) == "nu":
-                caps.append(np.full(en.size, 0.5))
             else:
                 sd, path = next((sd, p) for sd, p in zip(self.seqs, self.paths[len(caps)]) if p is not None)
-                v = np.abs(np.ravel(np.asarray(get_param(sd.params, path), float)))
-                caps.append(np.maximum(10.0 * v, 1.0))
+                caps.append(np.ravel(transform_of(en.name).max_step(get_param(sd.params, path))))
         self.max_step = np.concatenate(caps)
         self.upper = np.concatenate([en.upper for en in self.entries])
         self.evaluations = 0
@@ -715,121 +685,48 @@ class _Fit:
 
 
 def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, tol=1e-5, progress=None) -> _Fit:
-    """Levenberg–Marquardt with Marquardt scaling on the training residuals, bounds by
-    projection with an active set (parameters pinned at a bound whose step points outwards)."""
+    """The bounded Levenberg–Marquardt of the identification core on the training residuals
+    (held-out entries weigh 0); the held-out sequences are simulated once, at the estimate."""
     cols = problem.columns(free_names)
-    lo, hi = problem.lower[cols], problem.upper[cols]
-    cap = problem.max_step[cols]
-    theta = np.array(theta0, float)
-    theta[cols] = np.clip(theta[cols], lo, hi)
-    w = train_entries.astype(float)
-    r = problem.residuals(theta, training_only=True)
-    loss = float(np.sum((w * r) ** 2))
-    if not np.isfinite(loss):
-        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
-                          "use more substeps or a better initial guess")
-    history = [loss]
-    if len(cols) == 0:  # nothing to fit (e.g. a base model whose parameters are all known)
-        r = problem.residuals(theta) if problem.skip else r
-        return _Fit(theta=theta, r=r, loss=loss, iterations=0, free=list(free_names), history=history)
-    lam = 1e-3
-    it = 0
-    J = None
-    for it in range(1, max_iter + 1):
-        J = problem.jacobian(theta, cols)
-        Jw = w[:, None] * J
-        A = Jw.T @ Jw
-        g = Jw.T @ (w * r)
-        diag = np.diag(A)
-        d = np.maximum(diag, 1e-12 * max(np.max(diag), 1e-300))
-        # directions the training data carry no information about stay where they are
-        informative = diag > 1e-10 * max(np.max(diag), 1e-300)
-        improved = False
-        for _ in range(10):
-            free = informative.copy()
-            for _pass in range(len(cols) + 1):
-                step = np.zeros(len(cols))
-                if free.any():
-                    Af = A[np.ix_(free, free)] + lam * np.diag(d[free])
-                    try:
-                        step[free] = -np.linalg.solve(Af, g[free])
-                    except np.linalg.LinAlgError:
-                        step[free] = -np.linalg.lstsq(Af, g[free], rcond=None)[0]
-                big = np.max(np.abs(step) / cap)
-                if big > 1.0:  # trust region: at most `cap` per parameter and iteration
-                    step = step / big
-                new = theta[cols] + step
-                out = ((new < lo) & (step < 0) & np.isclose(theta[cols], lo)) | ((new > hi) & (step > 0) & np.isclose(theta[cols], hi))
-                if not (out & free).any():
-                    break
-                free &= ~out
-            trial = theta.copy()
-            trial[cols] = np.clip(theta[cols] + step, lo, hi)
-            r_t = problem.residuals(trial, training_only=True)
-            loss_t = float(np.sum((w * r_t) ** 2))
-            if np.isfinite(loss_t) and loss_t < loss:
-                rel = (loss - loss_t) / max(loss, 1e-300)
-                theta, r, loss = trial, r_t, loss_t
-                lam = max(lam / 3.0, 1e-9)
-                improved = True
-                break
-            lam *= 4.0
-        history.append(loss)
-        if progress is not None:
-            progress(it, loss)
-        if not improved or rel < tol:
-            break
-    if problem.skip:  # the held-out sequences, once, at the estimate
-        r = problem.residuals(theta)
-    return _Fit(theta=theta, r=r, loss=loss, iterations=it, free=list(free_names), history=history, J=J)
+    out = bounded_levenberg_marquardt(
+        lambda th: problem.residuals(th, training_only=True), problem.jacobian, theta0, cols,
+        problem.lower[cols], problem.upper[cols], problem.max_step[cols], train_entries,
+        max_iter=max_iter, tol=tol, progress=progress)
+    r = problem.residuals(out.theta) if problem.skip else out.r
+    return _Fit(theta=out.theta, r=r, loss=out.loss, iterations=out.iterations, free=list(free_names),
+                history=out.history, J=out.J)
 
 
 def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:
-    """Frame-clustered sandwich covariance of the free parameters (optimisation space):
-    ``A^-1 (sum_g s_g s_g^T) A^-1 G/(G-p)`` with ``s_g = J_g^T r_g`` over training groups g;
-    falls back to ``s^2 A^-1`` (``s^2 = RSS / (G - p)``) with too few groups."""
+    """Frame-clustered sandwich covariance of the free parameters (optimisation space; see
+    :func:`jaxmpm.identify.uncertainty.gauss_newton_covariance`) over the training groups.
+    Parameters pinned at a bound are held fixed (their std is reported as 0)."""
     cols_all = problem.columns(fit.free)
     th = fit.theta[cols_all]
-    # parameters pinned at a bound are held fixed (their std is reported as 0)
     pinned = np.isclose(th, problem.lower[cols_all], atol=1e-12) | np.isclose(th, problem.upper[cols_all], atol=1e-12)
     cols = cols_all[~pinned]
     full = np.zeros((len(cols_all), len(cols_all)))
     if len(cols) == 0:
         return full
     J = problem.jacobian(fit.theta, cols)
-    w = train_entries.astype(float)
-    Jw, rw = w[:, None] * J, w * fit.r
-    A = Jw.T @ Jw
-    Ainv = np.linalg.pinv(A)
     g = problem.groups.entry_group
-    train_groups = np.unique(g[(g >= 0) & train_entries])
-    G, p = len(train_groups), len(cols)
-    if G > p + 1:
-        S = np.zeros((G, p))
-        idx = np.searchsorted(train_groups, g[(g >= 0) & train_entries])
-        np.add.at(S, idx, Jw[(g >= 0) & train_entries] * rw[(g >= 0) & train_entries][:, None])
-        B = S.T @ S * G / (G - p)
-        cov = Ainv @ B @ Ainv
-    else:
-        cov = float(rw @ rw) / max(G - p, 1) * Ainv
+    rows = (g >= 0) & train_entries
     keep = np.flatnonzero(~pinned)
-    full[np.ix_(keep, keep)] = cov
+    full[np.ix_(keep, keep)] = gauss_newton_covariance(J[rows], fit.r[rows], groups=g[rows])
     return full
 
 
 def _std_physical(problem: _Problem, theta, names, cov) -> dict[str, np.ndarray]:
-    out = {}
-    cols = problem.columns(names)
+    """Standard deviations in physical units of the entries ``names`` from ``cov`` (their order)."""
     sd_opt = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    k = 0
+    y, std_y, k = {}, {}, 0
     for n in names:
         en = problem.entry(n)
-        y = jnp.asarray(theta[problem.slices[n]], _F())
-        slope = np.asarray(jax.vmap(jax.grad(lambda t, n=n: jnp.sum(problem.physical(n, t))))(y))
-        out[n] = (np.abs(slope) * sd_opt[k:k + en.size]).reshape(en.shape) if en.shape else float(np.abs(slope[0]) * sd_opt[k])
+        y[n] = jnp.asarray(theta[problem.slices[n]], _F()).reshape(en.shape)
+        std_y[n] = sd_opt[k:k + en.size].reshape(en.shape)
         k += en.size
-    assert k == len(cols)
-    return out
+    out = physical_std(names, y, std_y, physical=problem.physical)
+    return {n: (out[n] if problem.entry(n).shape else float(out[n])) for n in names}
 
 
 # =========================================================================== results

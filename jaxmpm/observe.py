@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import zipfile
@@ -204,3 +205,72 @@ def load_observation(path: str | Path) -> Observation:
     except Exception as err:
         raise ObservationError(f"{path}: malformed observation ({err})") from None
     return obs
+
+
+# --------------------------------------------------------------------------- scene checks
+
+
+def check_observation_matches(model, observation: Observation) -> None:
+    """Raise ObservationError when the observation's embedded scene has another dimension or
+    number of bodies than ``model``."""
+    spec = observation.scene_spec
+    if spec is not None and spec.get("dim") not in (None, model.dim):
+        raise ObservationError(f"the observation's scene is {spec.get('dim')}-D but the model is {model.dim}-D")
+    if spec is not None and isinstance(spec.get("bodies"), list) and len(spec["bodies"]) != len(model.bodies):
+        raise ObservationError(
+            f"the observation's scene has {len(spec['bodies'])} bodies but the model has {len(model.bodies)}"
+        )
+
+
+_GEOMETRY_KEYS = ("shape", "lo", "hi", "center", "radius", "path", "scale", "translate", "rotate")
+_COLLIDER_KEYS = ("type", "point", "normal", "lo", "hi", "path", "scale", "translate", "rotate", "points",
+                  "segments", "closed", "contact", "velocity", "angular_velocity")
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(float(a), float(b), rel_tol=1e-6, abs_tol=1e-9)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, str) and isinstance(b, str) and a != b:
+        return Path(a).name == Path(b).name  # a path made absolute by Scene.to_json
+    return a == b
+
+
+def check_scene_compatible(spec: dict, observed: dict | None) -> None:
+    """Raise ObservationError when an observation's scene disagrees with the fitted scene.
+
+    Material *values*, initial velocities, substeps, frame counts and grid spacing may
+    differ (they are what a fit varies, or numerical choices); the dimension, domain,
+    bodies' shapes and material models, and the colliders' geometry and contact may not.
+    """
+    if observed is None:
+        return
+    diffs = []
+    for key in ("dim",):
+        if not _same(spec.get(key), observed.get(key)):
+            diffs.append(f"{key}: {spec.get(key)!r} vs {observed.get(key)!r}")
+    for key in ("lo", "hi"):
+        a, b = spec.get("domain", {}).get(key), observed.get("domain", {}).get(key)
+        if not _same(a, b):
+            diffs.append(f"domain.{key}: {a} vs {b}")
+    bodies, obodies = spec.get("bodies", []), observed.get("bodies", [])
+    if len(bodies) != len(obodies):
+        diffs.append(f"{len(bodies)} bodies vs {len(obodies)}")
+    for k, (b, o) in enumerate(zip(bodies, obodies)):
+        for key in _GEOMETRY_KEYS:
+            if not _same(b.get(key), o.get(key)):
+                diffs.append(f"bodies[{k}].{key}: {b.get(key)!r} vs {o.get(key)!r}")
+        m1, m2 = (b.get("material") or {}).get("model"), (o.get("material") or {}).get("model")
+        if m1 != m2:
+            diffs.append(f"bodies[{k}].material.model: {m1!r} vs {m2!r}")
+    cols, ocols = spec.get("colliders", []), observed.get("colliders", [])
+    if len(cols) != len(ocols):
+        diffs.append(f"{len(cols)} colliders vs {len(ocols)}")
+    for k, (c, o) in enumerate(zip(cols, ocols)):
+        for key in _COLLIDER_KEYS:
+            if not _same(c.get(key), o.get(key)):
+                diffs.append(f"colliders[{k}].{key}: {c.get(key)!r} vs {o.get(key)!r}")
+    if diffs:
+        shown = "; ".join(diffs[:6]) + (f"; and {len(diffs) - 6} more" if len(diffs) > 6 else "")
+        raise ObservationError(f"the observation was made for a different scene (this scene vs the observation's): {shown}")

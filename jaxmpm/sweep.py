@@ -23,7 +23,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .errors import JaxmpmError
-from .fit import get_param, resolve_name, set_param
+from .identify.parameters import get_param, resolve_name, set_param
 from .model import Model, Params
 from .step import Trajectory, simulate
 

@@ -12,7 +12,8 @@ from collider_scenes import ELASTIC, FLUID, SAND, Incline, depth_inside, rollout
 from jaxmpm.colliders import Box, Plane
 from jaxmpm.cpic import GHOST_WEIGHT_MIN, CollisionField, ghost_mean_offset
 from jaxmpm.errors import SceneError
-from jaxmpm.fit import fit, set_param
+from jaxmpm.fit import FitConfig, fit
+from jaxmpm.identify import set_param
 from jaxmpm.model import Model
 from jaxmpm.observe import Observation
 from jaxmpm.scene import load_scene
@@ -165,7 +166,7 @@ def test_fit_identifies_collider_friction_from_sliding_tracks():
     times, x, _ = rollout(truth.model, truth.params)
     obs = Observation(times=times, positions=x, point_ids="particles")
     start = Incline(30.0, 0.1, dx=0.04, frames=6, substeps=30)
-    result = fit(start.model, start.params, obs, ["ramp.friction"], max_steps=20)
+    result = fit(start.model, start.params, obs, ["ramp.friction"], FitConfig(max_steps=20))
     assert float(result.values["ramp.friction"]) == pytest.approx(0.35, abs=0.01)
     assert result.loss[-1] < 1e-3 * result.loss[0]
 

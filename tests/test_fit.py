@@ -7,7 +7,8 @@ from scenes import MATERIAL_CASES, block_spec
 
 from jaxmpm.constitutive import MATERIALS
 from jaxmpm.errors import JaxmpmError, ObservationError
-from jaxmpm.fit import LOG10_PARAMS, fit, from_unconstrained, resolve_name, to_unconstrained
+from jaxmpm.fit import FitConfig, fit
+from jaxmpm.identify import LOG10_PARAMS, from_unconstrained, resolve_name, to_unconstrained
 from jaxmpm.observe import Observation
 from jaxmpm.scene import load_scene
 from jaxmpm.step import simulate
@@ -26,12 +27,12 @@ def _spec(material, model):
 @pytest.mark.parametrize("model", list(MATERIAL_CASES))
 def test_fit_recovers_parameters_from_tracks(model):
     truth, guess = MATERIAL_CASES[model]
-    names = list(MATERIALS[model].required)
+    names = list(MATERIALS[model].required())
     true_scene = load_scene(_spec(truth, model))
     traj = simulate(true_scene.model, true_scene.params)
     obs = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x), point_ids="particles")
     start = load_scene(_spec({"model": model, **guess}, model))
-    result = fit(start.model, start.params, obs, names, max_steps=60, stages=None)
+    result = fit(start.model, start.params, obs, names, FitConfig(max_steps=60, stages=None))
     assert result.loss[-1] < 1e-3 * result.loss[0]
     for name in names:
         est = float(result.values[name])

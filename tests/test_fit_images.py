@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scenes import block_spec
 
-from jaxmpm.fit import fit
-from jaxmpm.losses import build_objective, make_fit_renderer, particle_colors
+from jaxmpm.fit import FitConfig, fit
+from jaxmpm.identify.residuals import build_objective, make_fit_renderer, particle_colors
 from jaxmpm.observe import Observation
 from jaxmpm.render import pacnerf_rig, render_views
 from jaxmpm.scene import load_scene
@@ -43,7 +43,7 @@ def test_silhouette_and_rgb_objectives(observed):
 
 def test_random_pixel_batches():
     """Adam's batches: n per view and frame, mostly from each view's candidate region."""
-    from jaxmpm.losses import _random_pixels
+    from jaxmpm.identify.residuals import _random_pixels
 
     table = jnp.asarray([[5, 6, 7, 7], [1, 2, 3, 4]], jnp.int32)  # view 0 has 3 candidates (padded)
     count = jnp.asarray([3, 4], jnp.int32)
@@ -65,7 +65,7 @@ def test_particle_colours_from_images(observed):
 def test_fit_mu_from_silhouettes(observed):
     """Levenberg–Marquardt through the renderer (forward-mode Jacobian of the silhouettes)."""
     start = load_scene(_spec(20.0))
-    result = fit(start.model, start.params, observed, ["mu"], stages=None, num_pixels=64, max_steps=30)
+    result = fit(start.model, start.params, observed, ["mu"], FitConfig(stages=None, num_pixels=64, max_steps=30))
     assert result.stages[0]["terms"] == {"silhouette": 1.0}
     assert result.converged, result.message
     assert abs(np.log10(float(result.values["mu"]) / 200.0)) < 0.05, float(result.values["mu"])

@@ -7,8 +7,10 @@ import pytest
 from scenes import block_spec
 
 from jaxmpm.errors import JaxmpmError, ObservationError
-from jaxmpm.fit import check_scene_compatible, fit, fit_scene, parse_weights
-from jaxmpm.losses import (
+from jaxmpm.cli import parse_weights
+from jaxmpm.fit import FitConfig, fit, fit_scene
+from jaxmpm.observe import check_scene_compatible
+from jaxmpm.identify.residuals import (
     build_objective,
     chamfer_residuals,
     gauge,
@@ -73,7 +75,7 @@ def test_fit_mu_from_a_front_position_probe(truth):
     obs = Observation(times=np.asarray(traj.times), probe_names=("front_x",),
                       probe_times=np.asarray(traj.times)[None], probe_values=np.asarray(traj.extra)[None])
     start = _scene(mu=10.0)
-    result = fit(start.model, start.params, obs, ["mu"], stages=None)
+    result = fit(start.model, start.params, obs, ["mu"], FitConfig(stages=None))
     assert result.converged, result.message
     assert abs(np.log10(float(result.values["mu"])) - np.log10(50.0)) < 0.02
     assert result.stages[0]["terms"] == {"probes": 1.0}
@@ -136,7 +138,7 @@ def test_bad_observations_are_clear_errors(truth):
     with pytest.raises(JaxmpmError, match="unknown parameter 'E'.*newtonian"):
         fit(scene.model, scene.params, obs, ["E"])
     with pytest.raises(JaxmpmError, match="unknown fit method 'sgd'"):
-        fit(scene.model, scene.params, obs, ["mu"], method="sgd")
+        fit(scene.model, scene.params, obs, ["mu"], FitConfig(method="sgd"))
 
 
 def test_masks_of_the_wrong_size_are_rejected():

@@ -7,7 +7,7 @@ import pytest
 from scenes import MATERIAL_CASES, block_spec
 
 from jaxmpm.constitutive import MATERIALS
-from jaxmpm.fit import resolve_name, set_param
+from jaxmpm.identify import resolve_name, set_param
 from jaxmpm.scene import load_scene
 from jaxmpm.step import simulate
 
@@ -37,7 +37,7 @@ def _loss_of(scene, names):
 def test_gradient_matches_central_differences(model):
     """d loss / d p for every fitted parameter p of the material (float64, relative error < 1e-3)."""
     truth, _ = MATERIAL_CASES[model]
-    names = MATERIALS[model].required
+    names = MATERIALS[model].required()
     scene = _scene(truth)
     loss = _loss_of(scene, names)
     values = jnp.asarray([truth[n] for n in names], jnp.float64)

@@ -20,7 +20,7 @@ SCRIPT = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     sys.path.insert(0, {tests!r})
     from scenes import block_spec
-    from jaxmpm.fit import set_param
+    from jaxmpm.identify import set_param
     from jaxmpm.scene import load_scene
     from jaxmpm.step import simulate
     from jaxmpm.sweep import sweep

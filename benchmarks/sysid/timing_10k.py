@@ -29,8 +29,10 @@ import numpy as np
 
 def main() -> None:
     from jaxmpm.bench_sysid import Case, INITIAL_GUESS, Preset, fit_reporters, rig, scene_spec, truth_values
-    from jaxmpm.fit import apply_unconstrained, fit, residuals_and_jacobian, to_unconstrained
-    from jaxmpm.losses import build_objective, make_fit_renderer
+    from jaxmpm.fit import FitConfig, fit
+    from jaxmpm.identify.parameters import apply_unconstrained, to_unconstrained
+    from jaxmpm.identify.residuals import build_objective, make_fit_renderer
+    from jaxmpm.identify.solvers import residuals_and_jacobian
     from jaxmpm.observe import Observation
     from jaxmpm.render import render_views
     from jaxmpm.scene import load_scene
@@ -98,7 +100,7 @@ def main() -> None:
     if args.fit or args.fit_only:
         start = load_scene(scene_spec(case, preset, INITIAL_GUESS["newtonian"], velocity=(0.0, 0.0, 0.0)))
         t0, c0 = time.perf_counter(), time.process_time()
-        result = fit(start.model, start.params, tracks, names + ["velocity"], max_steps=preset.max_steps,
+        result = fit(start.model, start.params, tracks, names + ["velocity"], FitConfig(max_steps=preset.max_steps),
                      **fit_reporters(t0))
         out["fit_s"] = time.perf_counter() - t0
         out["fit_cpu_s"] = time.process_time() - c0

@@ -1,4 +1,4 @@
-"""Constitutive models: one abstract :class:`Material`, five final PAC-NeRF materials."""
+"""Constitutive models: one abstract :class:`Material` and its final subclasses (PAC-NeRF's five materials and fixed-corotated elasticity)."""
 
 from .base import Material as Material
 from .base import lame_from_young as lame_from_young

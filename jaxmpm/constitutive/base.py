@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import abc
-import math
 from typing import ClassVar
 
 import equinox as eqx
@@ -11,6 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ..errors import SceneError
+from ..parameters import Parameter
 
 Params = dict[str, Float[Array, ""]]
 
@@ -43,24 +43,6 @@ def lame_from_young(E, nu):
     return mu, lam
 
 
-class Range:
-    """An allowed open/closed interval for a material parameter, for validation."""
-
-    def __init__(self, lo=-math.inf, hi=math.inf, lo_open=True, hi_open=True, text=""):
-        self.lo, self.hi, self.lo_open, self.hi_open, self.text = lo, hi, lo_open, hi_open, text
-
-    def __contains__(self, value: float) -> bool:
-        above = value > self.lo if self.lo_open else value >= self.lo
-        below = value < self.hi if self.hi_open else value <= self.hi
-        return bool(above and below and math.isfinite(value))
-
-
-POSITIVE = Range(0.0, text="> 0")
-NON_NEGATIVE = Range(0.0, lo_open=False, text=">= 0")
-POISSON = Range(-1.0, 0.5, text="in (-1, 0.5)")
-ANGLE = Range(0.0, 90.0, text="in (0, 90) degrees")
-
-
 class Material(eqx.Module):
     """A constitutive model. Concrete materials are final subclasses.
 
@@ -69,26 +51,37 @@ class Material(eqx.Module):
 
     Class attributes:
         name: the scene-file ``model`` string.
-        required: parameter names that a scene must give.
-        defaults: optional parameter names and their default values.
-        ranges: validity range of each parameter (checked when a scene is loaded).
+        parameters: every parameter of the model, each a :class:`~jaxmpm.parameters.Parameter`
+            (units, valid range, fitting space, learning rate, PAC-NeRF's initial guess),
+            declared once here, next to the constitutive law that uses it.
+        defaults: values of the optional parameters (the others are required).
     """
 
     name: ClassVar[str]
-    required: ClassVar[tuple[str, ...]]
+    parameters: ClassVar[tuple[Parameter, ...]]
     defaults: ClassVar[dict[str, float]] = {}
-    ranges: ClassVar[dict[str, Range]] = {}
+
+    @classmethod
+    def required(cls) -> tuple[str, ...]:
+        """The names a scene must give (PAC-NeRF's fitted parameters of this model)."""
+        return tuple(p.name for p in cls.parameters if p.name not in cls.defaults)
 
     @classmethod
     def parameter_names(cls) -> tuple[str, ...]:
-        return cls.required + tuple(k for k in cls.defaults if k not in cls.required)
+        return tuple(p.name for p in cls.parameters)
+
+    @classmethod
+    def parameter(cls, name: str) -> Parameter | None:
+        """The declaration of ``name``, or None if this model has no such parameter."""
+        return next((p for p in cls.parameters if p.name == name), None)
 
     @classmethod
     def validate(cls, values: dict[str, float], where: str = "material") -> dict[str, float]:
         """Check names and ranges of user-given parameters; return them with defaults filled."""
         out = dict(cls.defaults)
         for key, value in values.items():
-            if key not in cls.parameter_names():
+            declared = cls.parameter(key)
+            if declared is None:
                 raise SceneError(
                     f"{where}: unknown parameter {key!r} for model {cls.name!r} "
                     f"(expected {', '.join(cls.parameter_names())})"
@@ -97,11 +90,11 @@ class Material(eqx.Module):
                 value = float(value)
             except (TypeError, ValueError):
                 raise SceneError(f"{where}: parameter {key!r} must be a number, got {value!r}") from None
-            allowed = cls.ranges.get(key)
-            if allowed is not None and value not in allowed:
-                raise SceneError(f"{where}: {key} = {value} is out of range (must be {allowed.text})")
+            complaint = declared.check(value, where)
+            if complaint is not None:
+                raise SceneError(complaint)
             out[key] = value
-        for key in cls.required:
+        for key in cls.required():
             if key not in out:
                 raise SceneError(f"{where}: missing required parameter {key!r} for model {cls.name!r}")
         return out

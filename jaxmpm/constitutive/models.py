@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import abc
 import math
+from dataclasses import replace
 from typing import ClassVar
 
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..parameters import ANGLE, NON_NEGATIVE, POISSON, POSITIVE, Linear, Log10, Parameter, TanhBounded
 from .base import (
-    ANGLE,
-    NON_NEGATIVE,
-    POISSON,
-    POSITIVE,
     SIGMA_MIN,
     Material,
     Params,
@@ -29,6 +27,22 @@ from .base import (
 from .svd import svd
 
 _SQRT_2_3 = math.sqrt(2.0 / 3.0)
+
+# --------------------------------------------------------------------------- parameters
+# Learning rates: PAC-NeRF's dynamic-stage Adam rates (anchors §1.5). Guesses: PAC-NeRF's
+# initial guesses for its 45-sequence batch (anchors §1.8).
+
+#: Poisson ratio bounds of the tanh map ``nu = mid + half tanh((y - mid) / half)``.
+NU_BOUNDS = (-0.45, 0.495)
+
+YOUNG = Parameter("E", "Pa", POSITIVE, Log10(), 0.1, 10**5.5, "Young's modulus")
+POISSON_RATIO = Parameter("nu", "", POISSON, TanhBounded(*NU_BOUNDS), 0.01, 0.25, "Poisson ratio")
+VISCOSITY = Parameter("mu", "Pa s", NON_NEGATIVE, Log10(), 0.1, 10.0, "dynamic viscosity")
+BULK = Parameter("kappa", "Pa", POSITIVE, Log10(), 0.1, 1e4, "bulk modulus")
+SHEAR = Parameter("mu", "Pa", POSITIVE, Log10(), 0.1, 100.0, "shear modulus")
+YIELD = Parameter("yield_stress", "Pa", NON_NEGATIVE, Log10(), 0.1, 10.0, "yield stress")
+PLASTIC_VISCOSITY = Parameter("eta", "Pa s", NON_NEGATIVE, Log10(), 0.05, 1.0, "plastic viscosity")
+FRICTION_ANGLE = Parameter("friction_angle", "deg", ANGLE, Linear(), 1.0, 10.0, "Drucker-Prager friction angle")
 
 
 def _hencky(F):
@@ -142,8 +156,7 @@ class Elastic(Material):
     """
 
     name: ClassVar[str] = "elastic"
-    required: ClassVar[tuple[str, ...]] = ("E", "nu")
-    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON}
+    parameters: ClassVar = (YOUNG, POISSON_RATIO)
 
     def return_map(self, F_trial, C, aux, params, dt):
         return F_trial, aux
@@ -166,8 +179,7 @@ class Corotated(Material):
     """
 
     name: ClassVar[str] = "corotated"
-    required: ClassVar[tuple[str, ...]] = ("E", "nu")
-    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON}
+    parameters: ClassVar = (YOUNG, POISSON_RATIO)
 
     def return_map(self, F_trial, C, aux, params, dt):
         return F_trial, aux
@@ -192,8 +204,7 @@ class Newtonian(Material):
     """
 
     name: ClassVar[str] = "newtonian"
-    required: ClassVar[tuple[str, ...]] = ("mu", "kappa")
-    ranges: ClassVar = {"mu": NON_NEGATIVE, "kappa": POSITIVE}
+    parameters: ClassVar = (VISCOSITY, BULK)
 
     def init_aux(self, n, dtype):
         return jnp.ones((n,), dtype)
@@ -222,8 +233,7 @@ class Viscoplastic(HenckyPlastic):
     """
 
     name: ClassVar[str] = "viscoplastic"
-    required: ClassVar[tuple[str, ...]] = ("mu", "kappa", "yield_stress", "eta")
-    ranges: ClassVar = {"mu": POSITIVE, "kappa": POSITIVE, "yield_stress": NON_NEGATIVE, "eta": NON_NEGATIVE}
+    parameters: ClassVar = (SHEAR, replace(BULK, guess=1e5), YIELD, PLASTIC_VISCOSITY)
 
     def lame(self, params, dim):
         return params["mu"], _bulk_lame(params["mu"], params["kappa"], dim)
@@ -239,8 +249,7 @@ class Plasticine(HenckyPlastic):
     """
 
     name: ClassVar[str] = "plasticine"
-    required: ClassVar[tuple[str, ...]] = ("E", "nu", "yield_stress")
-    ranges: ClassVar = {"E": POSITIVE, "nu": POISSON, "yield_stress": NON_NEGATIVE}
+    parameters: ClassVar = (replace(YOUNG, guess=1e4), POISSON_RATIO, replace(YIELD, guess=1e3))
 
     def lame(self, params, dim):
         return lame_from_young(params["E"], params["nu"])
@@ -279,9 +288,8 @@ class Sand(HenckyPlastic):
     """
 
     name: ClassVar[str] = "sand"
-    required: ClassVar[tuple[str, ...]] = ("friction_angle",)
+    parameters: ClassVar = (FRICTION_ANGLE, YOUNG, POISSON_RATIO)
     defaults: ClassVar[dict[str, float]] = {"E": 1e6, "nu": 0.3}
-    ranges: ClassVar = {"friction_angle": ANGLE, "E": POSITIVE, "nu": POISSON}
 
     def lame(self, params, dim):
         return lame_from_young(params["E"], params["nu"])

@@ -44,11 +44,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import JaxmpmError, ObservationError
-from .model import Model, Params
-from .observe import Observation
-from .state import State
-from .step import Trajectory, simulate
+from ..errors import JaxmpmError, ObservationError
+from ..model import Model, Params
+from ..observe import Observation
+from ..state import State
+from ..step import Trajectory, simulate
 
 __all__ = [
     "TERMS",
@@ -199,7 +199,7 @@ def probe_function(name: str, extra: dict[str, ProbeFn] | None = None) -> ProbeF
             except ValueError:
                 break
     raise ObservationError(
-        f"unknown probe {name!r}: register it with jaxmpm.losses.register_probe({name!r}, fn) or pass "
+        f"unknown probe {name!r}: register it with jaxmpm.identify.register_probe({name!r}, fn) or pass "
         f"probes={{{name!r}: fn}}; known probes: {', '.join(probe_names())}"
     )
 
@@ -401,7 +401,7 @@ def make_fit_renderer(kind, model: Model, **options):
 
     ``kind`` is ``"volume"``, ``"surfels"`` or a renderer instance (returned unchanged).
     """
-    from .render import AbstractRenderer, make_renderer
+    from ..render import AbstractRenderer, make_renderer
 
     if isinstance(kind, AbstractRenderer):
         return kind
@@ -415,7 +415,7 @@ def make_fit_renderer(kind, model: Model, **options):
 
 def _check_cameras(obs: Observation, dtype=jnp.float32):
     """Cameras from the observation, with clear errors for inconsistent image sizes."""
-    from .render import Camera
+    from ..render import Camera
 
     arr = obs.masks if obs.masks is not None else obs.images
     V, T, H, W = np.shape(arr)[:4]
@@ -437,8 +437,8 @@ def _check_cameras(obs: Observation, dtype=jnp.float32):
 def _image_terms(
     model, obs, sel, frames, weights, renderer, num_pixels, uniform_fraction, margin, seed, colors
 ) -> list[_Term]:
-    from .render import render_pixels
-    from .render.losses import as_unit_float
+    from ..render import render_pixels
+    from ..render.losses import as_unit_float
 
     dtype = model.bodies[0].x0.dtype
     cams = _check_cameras(obs, dtype)

@@ -1,0 +1,517 @@
+"""The solvers of the identification core.
+
+* :func:`levenberg_marquardt`: ``optimistix.LevenbergMarquardt`` on forward-mode Jacobians,
+  residuals scaled to a unit starting loss, with a Gauss–Newton test of what a stall means
+  (stationary point, the loss's round-off floor, or a rough loss to escape by line search).
+* :func:`bounded_levenberg_marquardt`: the same damping idea on host NumPy with bounds (an
+  active set) and a per-parameter trust region, for discovery, whose extension parameters have
+  their null values on bounds (a drag, a friction or a restitution cannot be negative; the
+  likelihood-ratio test is one-sided there) — optimistix's solver has no bounds.
+* :func:`bfgs` (optimistix) and :func:`adam` (optax, PAC-NeRF's optimiser) on the scalar loss.
+
+Each returns a :class:`SolverOutcome`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..errors import JaxmpmError
+from .parameters import ADAM_LEARNING_RATES, leaf_name
+
+__all__ = [
+    "SolverOutcome",
+    "MAX_REJECTED_STEPS",
+    "residuals_and_jacobian",
+    "gauss_newton_step",
+    "at_round_off_floor",
+    "gauss_newton_escape",
+    "levenberg_marquardt",
+    "bounded_levenberg_marquardt",
+    "BoundedFit",
+    "bfgs",
+    "adam",
+]
+
+#: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
+#: which the solver asks whether it stands at a stationary point.
+MAX_REJECTED_STEPS = 6
+
+
+@dataclass
+class SolverOutcome:
+    """What a solver returns: the parameters (optimisation space), the loss after each accepted
+    iteration (first = initial), iterations, whether it converged and why (``message``), and
+    whether unstable rollouts stopped it (``unhealthy_trial``) or it could not start
+    (``unhealthy_start``)."""
+
+    y: dict
+    losses: list
+    iterations: int
+    converged: bool
+    message: str
+    unhealthy_trial: bool = False
+    unhealthy_start: bool = False
+    jacobian: Any = None  # (r, J) at y when the solver has them (LM), for the covariance
+
+
+def residuals_and_jacobian(residuals: Callable, y0: dict):
+    """``rj(flat) -> (r, J)`` (jitted) and the ravel/unravel pair of ``y0``: the residuals and
+    their Jacobian by forward mode, one JVP per parameter sharing one primal rollout."""
+    flat0, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    @jax.jit
+    def rj(flat):
+        basis = jnp.eye(flat.size, dtype=flat.dtype)
+        g = lambda v: residuals(unravel(v))  # noqa: E731
+        r, J = jax.vmap(lambda t: jax.jvp(g, (flat,), (t,)), out_axes=(None, 0))(basis)
+        return r, J.T
+
+    return rj, flat0, unravel
+
+
+#: Step lengths tried along the Gauss–Newton direction when the trust region has collapsed.
+ESCAPE_STEPS = (1.0, 0.5, 0.25, 0.125, 0.0625)
+#: At most this many such escapes per stage.
+MAX_ESCAPES = 4
+#: The verdicts of :func:`gauss_newton_escape` that count as converged.
+STATIONARY = ("stationary", "floor")
+
+
+def gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
+    """The undamped Gauss–Newton step at ``flat`` (``None`` if the residuals or Jacobian are
+    not finite) and whether every component of it is within ``max(rtol, 1e-3) (1 + |y|)`` in
+    optimisation units (decades, degrees, m/s): a stationary point at this precision."""
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    return _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
+
+
+def _gauss_newton_from(r, J, y, rtol) -> tuple[np.ndarray | None, bool]:
+    """:func:`gauss_newton_step` from residuals ``r`` and Jacobian ``J`` already evaluated at ``y``."""
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return None, False
+    delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+    return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+
+
+#: Largest component of the probe step that measures a loss's round-off noise, relative to
+#: ``1 + |y|`` (optimisation units): far above float32's resolution, far below any fitted feature.
+NOISE_PROBE = 1e-4
+
+
+def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
+    """Whether the Gauss–Newton step ``delta`` at ``flat`` promises less than the loss's own
+    round-off noise.
+
+    The step's predicted decrease is ``|J delta|^2`` (``delta`` solves the linear least
+    squares). The noise is measured, not assumed: a probe step ``t delta`` so short that its
+    second-order term is negligible changes the residuals by ``t J delta`` plus whatever the
+    rollout's round-off (amplified by contact and return-map switching) adds; that remainder
+    ``|r(y + t delta) - r(y) - t J delta|^2`` is the loss change noise alone causes. When the
+    promise is below it, no step can be told apart from noise: a stationary point at this
+    precision (the loss's floor), though the step itself may not be small in a poorly
+    determined direction. ``r, J`` at ``flat`` are evaluated unless given.
+    """
+    if r is None or J is None:
+        r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    y = np.asarray(flat, np.float64)
+    # the step's largest component, relative to 1 + |y|, becomes NOISE_PROBE
+    t = min(NOISE_PROBE / max(float(np.max(np.abs(delta) / (1.0 + np.abs(y)))), 1e-300), 1.0)
+    r_t = np.asarray(rj(jnp.asarray(y + t * delta, flat.dtype))[0], np.float64)
+    y_t = np.asarray(jnp.asarray(y + t * delta, flat.dtype), np.float64)  # the probe as rounded
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and np.all(np.isfinite(r_t))):
+        return False
+    noise = float(np.sum((r_t - r - J @ (y_t - y)) ** 2))
+    promised = float(np.sum((J @ delta) ** 2))
+    return promised <= noise
+
+
+def gauss_newton_escape(loss_of, rj, flat, f, rtol):
+    """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
+
+    A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
+    the trust region can collapse far from a minimum: the local slope it sees disagrees with
+    the trend. Here the undamped Gauss–Newton step ``delta`` is computed from ``(r, J)`` at
+    ``flat`` and tried at the lengths ``ESCAPE_STEPS``.
+
+    Returns ``((new_flat, new_loss), "rough")`` for the first length that lowers the loss,
+    else ``(None, verdict)``: ``"stationary"`` (the test of :func:`gauss_newton_step`),
+    ``"floor"`` (no length helped and the step promises less than the loss's round-off noise,
+    :func:`at_round_off_floor`) or ``"rough"`` (stuck away from a stationary point).
+    """
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    delta, stationary = _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
+    if delta is None:
+        return None, "rough"
+    if stationary:
+        return None, "stationary"
+    y = np.asarray(flat, np.float64)
+    for alpha in ESCAPE_STEPS:
+        trial = jnp.asarray(y + alpha * delta, flat.dtype)
+        f_t = float(loss_of(trial))
+        if np.isfinite(f_t) and f_t < f:
+            return (trial, f_t), "rough"
+    return None, "floor" if at_round_off_floor(rj, flat, delta, r, J) else "rough"
+
+
+def _lm_message(how: str, iterations: int, max_steps: int) -> str:
+    """The stage message of :func:`levenberg_marquardt` for how it stopped: ``"converged"`` (tolerance
+    test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"floor"``
+    (rejected steps at the loss's round-off floor), ``"rough"``
+    (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
+    (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
+    point: converged)."""
+    return {
+        "converged": f"converged in {iterations} iterations",
+        "stationary": (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
+                       "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
+                       "at this precision)"),
+        "floor": (f"converged in {iterations} iterations (at the loss's round-off floor: no trial step lowered it "
+                  "and the Gauss-Newton step promises less than the loss's measured round-off noise; parameters "
+                  "in poorly determined directions are known only to their std)"),
+        "rough": (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
+                  "still large but neither the trust region nor a line search along it lowers the loss (a rough "
+                  "loss at this precision; try float64, another starting point or method='adam')"),
+        "unstable": f"stalled after {iterations} iterations: the trial steps made the simulation unstable",
+        "cap": f"did not converge within {max_steps} iterations",
+        "cap-stationary": (f"converged in {iterations} iterations (the iteration limit was reached, but the "
+                           "Gauss-Newton step there is within tolerance: a stationary point at this precision)"),
+    }[how]
+
+
+def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
+    """Levenberg–Marquardt (``optimistix``) on ``residuals(y) -> (M,)`` with forward-mode Jacobians.
+
+    Converged when optimistix's Cauchy test passes (a small step and a small loss change,
+    ``rtol``/``atol``) *and* the undamped Gauss–Newton step there is within
+    ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees, m/s); or, after
+    ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
+    round-off floor (:func:`at_round_off_floor`). A collapsed trust region away from both is
+    escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
+    most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
+    step is within tolerance. ``progress(offset + iteration, loss)`` is called every iteration.
+    """
+    r0 = jax.jit(residuals)(y0)
+    if not bool(jnp.all(jnp.isfinite(r0))):
+        return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+    f0 = float(jnp.sum(r0**2))
+    # optimistix's trust region starts at damping 1 on the loss: residuals scaled to a unit
+    # starting loss make that comparable to J^T J, instead of first steps ~f0 times too short
+    # that take several iterations to grow (losses are reported unscaled)
+    scale = 1.0 / math.sqrt(f0) if 0.0 < f0 < math.inf else 1.0
+
+    def fn(y, args):  # optimistix's solver interface: (residuals, aux)
+        return residuals(y) * scale, None
+
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    options = {"jac": "fwd"}
+    tags = frozenset()
+    f_struct = jax.eval_shape(lambda: r0)
+    state = solver.init(fn, y0, None, options, f_struct, None, tags)
+
+    @eqx.filter_jit
+    def advance(y, state):
+        y, state, _ = solver.step(fn, y, None, options, state, tags)
+        done, result = solver.terminate(fn, y, None, options, state, tags)
+        loss = jnp.sum(state.f_info.residual**2) / scale**2
+        return y, state, done, result, loss
+
+    y = y0
+    losses = [f0]
+    converged, stalled, verdict, iterations = False, False, "rough", 0
+    escape_tools, escapes, fresh = None, 0, True
+    succeeded = False
+    for iterations in range(1, max_steps + 1):
+        y, state, done, result, loss = advance(y, state)
+        # a fresh state's first step only evaluates its starting point; later accepted steps
+        # move to a lower loss
+        accepted = not fresh and int(state.num_steps_since_acceptance) == 0
+        fresh = False
+        if accepted:
+            losses.append(float(loss))
+        if progress is not None:
+            progress(offset + iterations, losses[-1])
+        succeeded = bool(done) and result == optx.RESULTS.successful
+        if bool(done) and not succeeded:
+            converged = False
+            break
+        # optimistix's Cauchy test (small step AND small loss change) also passes when its
+        # trust region has collapsed on a rough loss far from a minimum; and at the loss's
+        # numerical floor the region shrinks without the test ever passing. Both end here:
+        # a stationary point only if the undamped Gauss-Newton step is within tolerance or
+        # promises less than the loss's round-off noise (gauss_newton_escape's verdicts).
+        if succeeded or int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
+            if escape_tools is None:
+                rj, _, unravel = residuals_and_jacobian(residuals, y)
+                loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
+                escape_tools = (rj, unravel, loss_of)
+            rj, unravel, loss_of = escape_tools
+            flat = jax.flatten_util.ravel_pytree(y)[0]
+            found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol)
+            if found is not None and escapes < MAX_ESCAPES:
+                escapes += 1
+                y = unravel(found[0])
+                losses.append(found[1])
+                state = solver.init(fn, y, None, options, f_struct, None, tags)
+                fresh = True
+                continue
+            stalled = not succeeded
+            converged = verdict in STATIONARY
+            break
+    # optimistix returns the last *accepted* point as y (trial points live in the state).
+    unhealthy = False
+    if stalled:
+        trial = jax.jit(residuals)(state.y_eval)
+        unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
+        if unhealthy:
+            converged = False
+    if stalled:
+        how = "unstable" if unhealthy else verdict
+    elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
+        how = {"stationary": "converged", "floor": "floor"}.get(verdict, "rough")
+    elif iterations >= max_steps:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
+        rj = residuals_and_jacobian(residuals, y)[0] if escape_tools is None else escape_tools[0]
+        converged = gauss_newton_step(rj, jax.flatten_util.ravel_pytree(y)[0], rtol)[1]
+        how = "cap-stationary" if converged else "cap"
+    else:  # optimistix stopped with a failure result before the limit
+        how = "cap"
+    return SolverOutcome(y, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy)
+
+
+def bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
+    f0 = jax.jit(loss_fn)(y0)
+    if not bool(jnp.isfinite(f0)):
+        return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+    # BFGS starts from an identity Hessian, so its first steps scale with the gradient:
+    # minimise the loss relative to its initial value to make them O(1)
+    scale = float(f0) if float(f0) > 0 else 1.0
+
+    def fn(y, args):
+        return loss_fn(y) / scale, None
+
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    options = {"autodiff_mode": "fwd"}
+    tags = frozenset()
+    f0 = f0 / scale
+    f_struct = jax.eval_shape(lambda: f0)
+    state = solver.init(fn, y0, None, options, f_struct, None, tags)
+
+    @eqx.filter_jit
+    def advance(y, state):
+        y, state, _ = solver.step(fn, y, None, options, state, tags)
+        done, result = solver.terminate(fn, y, None, options, state, tags)
+        return y, state, done, result
+
+    y = y0
+    losses = [float(f0) * scale]
+    converged, iterations = False, 0
+    best = (losses[0], y0)
+    for iterations in range(1, max_steps + 1):
+        y, state, done, result = advance(y, state)
+        f = float(state.f_info.f) * scale
+        if iterations > 1 and np.isfinite(f) and f < losses[-1]:
+            losses.append(f)
+            best = (f, y)
+        if progress is not None:
+            progress(offset + iterations, losses[-1])
+        if bool(done):
+            converged = result == optx.RESULTS.successful
+            break
+    y = best[1]
+    unhealthy = False
+    if bool(done) and not converged:  # the solver gave up (e.g. its line search failed)
+        unhealthy = not bool(jnp.isfinite(jax.jit(loss_fn)(state.y_eval)))
+    message = f"converged in {iterations} iterations" if converged else f"did not converge within {max_steps} iterations"
+    return SolverOutcome(y, losses, iterations, converged, message, unhealthy)
+
+
+def _learning_rates(names, y0, learning_rates) -> dict:
+    out = {}
+    for n in names:
+        leaf = leaf_name(n)
+        lr = (learning_rates or {}).get(n, (learning_rates or {}).get(leaf, ADAM_LEARNING_RATES.get(leaf, 0.01)))
+        out[n] = jnp.broadcast_to(jnp.asarray(lr, jnp.result_type(float)), jnp.shape(y0[n]))
+    return out
+
+
+def adam(
+    loss_fn, y0, *, max_steps, learning_rates, lr_decay, xtol, patience, grad, seed, progress, offset, names
+) -> SolverOutcome:
+    import optax
+
+    lrs = _learning_rates(names, y0, learning_rates)
+    decay = 1.0 if lr_decay is None else float(lr_decay)
+    opt = optax.scale_by_adam()
+    _, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    def value_and_grad(y, key):
+        if grad == "rev":
+            return jax.value_and_grad(loss_fn)(y, key)
+        flat, _ = jax.flatten_util.ravel_pytree(y)
+        f = lambda v: loss_fn(unravel(v), key)  # noqa: E731
+        basis = jnp.eye(flat.size, dtype=flat.dtype)
+        # one JVP per parameter; the primal does not depend on the tangent, so it runs once
+        value, g = jax.vmap(lambda t: jax.jvp(f, (flat,), (t,)), out_axes=(None, 0))(basis)
+        return value, unravel(g)
+
+    @jax.jit
+    def advance(y, opt_state, key, factor):
+        value, g = value_and_grad(y, key)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
+            updates, opt_state = opt.update(g, opt_state, y)
+        new = jax.tree_util.tree_map(lambda a, u, lr: a - (factor * lr).astype(a.dtype) * u, y, updates, lrs)
+        ok = jnp.isfinite(value) & jnp.all(jnp.isfinite(jax.flatten_util.ravel_pytree(g)[0]))
+        return new, opt_state, value, ok
+
+    base = jax.random.PRNGKey(seed)
+    y, opt_state = y0, opt.init(y0)
+    losses, history = [], []
+    best = (math.inf, y0)
+    converged, unhealthy, iterations = False, False, 0
+    for iterations in range(1, max_steps + 1):
+        factor = jnp.asarray(decay ** ((iterations - 1) / max(max_steps - 1, 1)), jnp.result_type(float))
+        new, new_state, value, ok = advance(y, opt_state, jax.random.fold_in(base, iterations), factor)
+        value = float(value)
+        if not bool(ok):
+            unhealthy = True
+            iterations -= 1
+            if iterations == 0:
+                return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
+            break
+        losses.append(value)
+        if value < best[0]:
+            best = (value, y)
+        if progress is not None:
+            progress(offset + iterations, value)
+        history.append(np.asarray(jax.flatten_util.ravel_pytree(y)[0]))
+        y, opt_state = new, new_state
+        if len(history) > patience and np.max(np.abs(history[-1] - history[-1 - patience])) < xtol:
+            converged = True
+            break
+    y_out = best[1] if np.isfinite(best[0]) else y
+    if converged:
+        message = f"converged in {iterations} iterations (parameters moved < {xtol:g} over the last {patience})"
+    elif unhealthy:
+        message = f"stopped after {iterations} iterations: the loss or its gradient became non-finite"
+    else:
+        message = f"did not converge within {max_steps} iterations (Adam; the lowest-loss iterate is returned)"
+    return SolverOutcome(y_out, losses, iterations, converged, message, unhealthy)
+
+
+
+
+
+
+@dataclass
+class BoundedFit:
+    """What :func:`bounded_levenberg_marquardt` returns: the parameter vector, the weighted
+    residuals' unweighted values ``r`` and loss there, iterations, the loss history and the
+    last Jacobian (columns of the free parameters)."""
+
+    theta: np.ndarray
+    r: np.ndarray
+    loss: float
+    iterations: int
+    history: list
+    J: np.ndarray | None = None
+
+
+def bounded_levenberg_marquardt(
+    residuals: Callable[[np.ndarray], np.ndarray],
+    jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    theta0: np.ndarray,
+    cols: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    max_step: np.ndarray,
+    weights: np.ndarray,
+    *,
+    max_iter: int = 25,
+    tol: float = 1e-5,
+    progress: Callable[[int, float], None] | None = None,
+) -> BoundedFit:
+    """Levenberg–Marquardt with Marquardt scaling and bounds, on host arrays.
+
+    Arguments:
+        residuals: ``theta (P,) -> r (M,)``; jacobian: ``(theta, cols) -> (M, len(cols))``.
+        theta0: the starting vector; only its entries ``cols`` are moved.
+        lower, upper, max_step: ``(len(cols),)`` bounds of the free entries and the largest
+            change of each per iteration (a per-parameter trust region).
+        weights: ``(M,)`` weight of each residual entry (0 drops it, e.g. held-out data).
+
+    Bounds are kept by projection with an active set: a parameter at a bound whose step points
+    outwards is pinned for that step. Directions the data carry no information about
+    (Jacobian column ~0) stay where they are. Stops when a step lowers the loss by less than
+    ``tol`` (relative) or no damping up to ``4^10`` times larger finds a lower loss.
+
+    Raises:
+        JaxmpmError: the loss is not finite at ``theta0`` (an unstable simulation).
+    """
+    lo, hi, cap = lower, upper, max_step
+    theta = np.array(theta0, float)
+    theta[cols] = np.clip(theta[cols], lo, hi)
+    w = np.asarray(weights, float)
+    r = residuals(theta)
+    loss = float(np.sum((w * r) ** 2))
+    if not np.isfinite(loss):
+        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
+                          "use more substeps or a better initial guess")
+    history = [loss]
+    if len(cols) == 0:  # nothing to fit
+        return BoundedFit(theta=theta, r=r, loss=loss, iterations=0, history=history)
+    lam = 1e-3
+    it = 0
+    J = None
+    for it in range(1, max_iter + 1):
+        J = jacobian(theta, cols)
+        Jw = w[:, None] * J
+        A = Jw.T @ Jw
+        g = Jw.T @ (w * r)
+        diag = np.diag(A)
+        d = np.maximum(diag, 1e-12 * max(np.max(diag), 1e-300))
+        informative = diag > 1e-10 * max(np.max(diag), 1e-300)
+        improved = False
+        for _ in range(10):
+            free = informative.copy()
+            for _pass in range(len(cols) + 1):
+                step = np.zeros(len(cols))
+                if free.any():
+                    Af = A[np.ix_(free, free)] + lam * np.diag(d[free])
+                    try:
+                        step[free] = -np.linalg.solve(Af, g[free])
+                    except np.linalg.LinAlgError:
+                        step[free] = -np.linalg.lstsq(Af, g[free], rcond=None)[0]
+                big = np.max(np.abs(step) / cap)
+                if big > 1.0:  # trust region: at most `cap` per parameter and iteration
+                    step = step / big
+                new = theta[cols] + step
+                out = ((new < lo) & (step < 0) & np.isclose(theta[cols], lo)) | ((new > hi) & (step > 0) & np.isclose(theta[cols], hi))
+                if not (out & free).any():
+                    break
+                free &= ~out
+            trial = theta.copy()
+            trial[cols] = np.clip(theta[cols] + step, lo, hi)
+            r_t = residuals(trial)
+            loss_t = float(np.sum((w * r_t) ** 2))
+            if np.isfinite(loss_t) and loss_t < loss:
+                rel = (loss - loss_t) / max(loss, 1e-300)
+                theta, r, loss = trial, r_t, loss_t
+                lam = max(lam / 3.0, 1e-9)
+                improved = True
+                break
+            lam *= 4.0
+        history.append(loss)
+        if progress is not None:
+            progress(it, loss)
+        if not improved or rel < tol:
+            break
+    return BoundedFit(theta=theta, r=r, loss=loss, iterations=it, history=history, J=J)
