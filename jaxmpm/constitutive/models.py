@@ -1,4 +1,4 @@
-"""The five PAC-NeRF materials, with PAC-NeRF's exact conventions.
+"""The PAC-NeRF materials (with PAC-NeRF's exact conventions) and fixed-corotated elasticity.
 
 Notation (D = 2 or 3): ``F = U diag(sigma) V^T`` with U, V rotations, ``sigma`` clamped
 to ``>= 0.05``; Hencky strain ``eps = log sigma``; deviatoric part
