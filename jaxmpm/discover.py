@@ -750,6 +750,8 @@ class Candidate:
         selected: kept in the extended model.
         reason: why it was or was not kept.
         step: the greedy step (1 = first extension added) at which it was evaluated.
+        lin_step, boundary, fit, cov: working state of the workflow (the screen's linearised
+            step, whether the null lies on a bound, the refit and its covariance); not reported.
     """
 
     id: str
@@ -767,6 +769,10 @@ class Candidate:
     selected: bool = False
     reason: str = ""
     step: int = 1
+    lin_step: Any = field(default=None, repr=False)
+    boundary: bool = field(default=False, repr=False)
+    fit: Any = field(default=None, repr=False)
+    cov: Any = field(default=None, repr=False)
 
 
 def _plain(v):
@@ -1100,8 +1106,8 @@ def discover(
             dof = int(sum(s.size for s in specs))
             boundary = dof == 1 and specs[0].bounded
             c = Candidate(id=e, score=float(score), score_p=p_value(stat, dof, boundary), dof=dof, step=step_no)
-            c._lin = lin_step  # type: ignore[attr-defined]
-            c._boundary = boundary  # type: ignore[attr-defined]
+            c.lin_step = lin_step
+            c.boundary = boundary
             cands.append(c)
         cands.sort(key=lambda c: -c.score)
         for c in cands:
@@ -1113,7 +1119,7 @@ def discover(
                 continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
-            f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c._lin,  # type: ignore[attr-defined]
+            f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c.lin_step,
                        entry_train, max_iter)
             if isinstance(f, str):
                 c.reason = f"refit failed: {f}"
@@ -1124,7 +1130,7 @@ def discover(
             c.gain = 1.0 - c.heldout_error / max(current_err, 1e-300)
             rss0, rss1 = current.loss, f.loss
             c.lrt = n_train * math.log(max(rss0, 1e-300) / max(rss1, 1e-300))
-            c.p_value = p_value(c.lrt, c.dof, c._boundary)  # type: ignore[attr-defined]
+            c.p_value = p_value(c.lrt, c.dof, c.boundary)
             vals = problem.values(f.theta)
             c.parameters = {n: vals[n] for n in problem.ext_names(c.id)}
             try:
@@ -1133,7 +1139,7 @@ def discover(
                 c.std = {n: stds[n] for n in problem.ext_names(c.id)}
             except Exception:  # noqa: BLE001 - diagnostics only
                 cov, c.std = None, {}
-            c._fit, c._cov = f, cov  # type: ignore[attr-defined]
+            c.fit, c.cov = f, cov
             improvement = current_err - c.heldout_error
             reasons = []
             if c.gain < min_gain:
@@ -1155,7 +1161,7 @@ def discover(
         best_cand.reason = "selected: " + best_cand.reason
         selected.append(best_cand.id)
         current = best_fit
-        ext_cov = best_cand._cov  # type: ignore[attr-defined]
+        ext_cov = best_cand.cov
         current_names = current_names + problem.ext_names(best_cand.id)
         current_train_err, current_err = best_cand.train_error, best_cand.heldout_error
         remaining = [e for e in remaining if e != best_cand.id]
@@ -1186,10 +1192,8 @@ def discover(
                     top=top, min_gain=min_gain, alpha=alpha, max_extensions=max_extensions, max_iter=max_iter,
                     convergence=convergence, noise_floor=noise_floor, train_groups=n_train,
                     heldout_groups=int(heldout.sum()), sequences=[s.name for s in sequences])
-    for c in order:  # drop private attributes
-        for a in ("_lin", "_boundary", "_fit", "_cov"):
-            if hasattr(c, a):
-                delattr(c, a)
+    for c in order:  # the workflow's working state is not part of the result
+        c.lin_step, c.fit, c.cov = None, None, None
     return Discovery(
         discrepancy=discrepancy,
         cause=selected[0] if selected else None,
