@@ -48,7 +48,7 @@ import numpy as np
 from . import extensions as X
 from .errors import JaxmpmError, ObservationError
 from .identify.parameters import from_unconstrained, get_param, resolve_name, set_param, to_unconstrained, transform_of
-from .identify.residuals import chamfer_residuals, check_tracks, probe_function
+from .identify.residuals import Frames, image_terms, lifted_layers, make_fit_renderer, probe_term, track_term
 from .identify.solvers import bounded_levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
@@ -136,131 +136,25 @@ def default_parameters(model: Model) -> list[str]:
 def _rollout(model, params, frames):
     traj = simulate(model, params, checkpoint=None, frames=frames)
     healthy = ~jnp.any(traj.nan) & jnp.all(traj.cfl <= 1.0)
-    return traj.x, traj.v, healthy
+    return Frames.of(traj), healthy
 
 
 @eqx.filter_jit
 def _rollout_jvp(model, params, tangent, frames):
     def f(p):
-        traj = simulate(model, p, checkpoint=None, frames=frames)
-        return traj.x, traj.v
+        return Frames.of(simulate(model, p, checkpoint=None, frames=frames))
 
-    (x, v), (dx, dv) = jax.jvp(f, (params,), (tangent,))
-    return x, v, dx, dv
-
-
-def _hermite(P, Pdot, times, t0, frame_dt):
-    """Values at ``times - t0`` from per-frame values ``P (F, ...)`` and time derivatives
-    ``Pdot`` (cubic Hermite: C1 in t0, exact at the frames; clamped to the simulated span)."""
-    F = P.shape[0]
-    dtype = P.dtype
-    s = (jnp.asarray(times, dtype) - jnp.asarray(t0, dtype)) / frame_dt
-    s = jnp.clip(s, 0.0, F - 1.0)
-    i0 = jnp.clip(jnp.floor(jax.lax.stop_gradient(s) + 1e-6), 0, F - 2).astype(jnp.int32)
-    u = s - i0.astype(dtype)
-    u2, u3 = u * u, u * u * u
-    h00, h10, h01, h11 = 2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2
-    shape = (-1,) + (1,) * (P.ndim - 1)
-    c = lambda h: h.reshape(shape)  # noqa: E731
-    return (c(h00) * P[i0] + c(h10) * frame_dt * Pdot[i0] + c(h01) * P[i0 + 1] + c(h11) * frame_dt * Pdot[i0 + 1])
-
-
-# =========================================================================== observables
-
-
-class _Observable(eqx.Module):
-    """Residuals of one kind of data (abstract). ``residuals(X, V, t0) -> (M,)``, scaled
-    so that the sum of squares over each group is that group's mean squared error."""
-
-    def residuals(self, X, V, t0):
-        raise NotImplementedError
-
-
-class _TrackResiduals(_Observable):
-    times: jax.Array
-    target: jax.Array
-    valid: jax.Array
-    scale: jax.Array  # (T,) 1/sqrt(count per frame)
-    frame_dt: float = eqx.field(static=True)
-    by_id: bool = eqx.field(static=True)
-
-    def residuals(self, X, V, t0):
-        x = _hermite(X, V, self.times, t0, self.frame_dt)  # (T, N, D)
-        if self.by_id:
-            r = jnp.where(self.valid[..., None], x - self.target, 0.0)
-            return (self.scale[:, None, None] * r).reshape(-1)
-        r = jax.vmap(chamfer_residuals)(x, self.target, self.valid)
-        return (self.scale[:, None] * r).reshape(-1)
-
-
-class _ProbeResiduals(_Observable):
-    times: jax.Array  # (P, Tp)
-    target: jax.Array
-    valid: jax.Array
-    scale: jax.Array  # (P, Tp)
-    mass: jax.Array
-    vol0: jax.Array
-    model: Any
-    fns: tuple = eqx.field(static=True)
-    frame_dt: float = eqx.field(static=True)
-
-    def _frame_values(self, X, V):
-        from .state import make_state
-
-        def one(x, v):
-            st = make_state(x, v, self.mass, self.vol0)
-            vals = [jax.jvp(lambda y, f=f: f(eqx.tree_at(lambda s: s.x, st, y), self.model), (x,), (v,)) for f in self.fns]
-            return jnp.stack([a for a, _ in vals]), jnp.stack([b for _, b in vals])
-
-        return jax.vmap(one)(X, V)  # (F, P) each
-
-    def residuals(self, X, V, t0):
-        P, Pdot = self._frame_values(X, V)
-        out = []
-        for p in range(len(self.fns)):
-            sim = _hermite(P[:, p], Pdot[:, p], self.times[p], t0, self.frame_dt)
-            out.append(jnp.where(self.valid[p], sim - self.target[p], 0.0) * self.scale[p])
-        return jnp.concatenate(out)
-
-
-class _SilhouetteResiduals(_Observable):
-    times: jax.Array
-    target: jax.Array  # (T, V, n) in [0, 1]
-    pixels: jax.Array  # (T, V, n)
-    scale: jax.Array  # (T,)
-    cameras: Any
-    renderer: Any
-    lift: jax.Array  # (L,) z offsets of the lifted layers (2D scenes), empty in 3D
-    frame_dt: float = eqx.field(static=True)
-
-    def positions3(self, x):
-        if x.shape[-1] == 3:
-            return x
-        layers = [jnp.concatenate([x, jnp.full(x.shape[:-1] + (1,), z, x.dtype)], axis=-1) for z in self.lift]
-        return jnp.concatenate(layers, axis=-2)
-
-    def residuals(self, X, V, t0):
-        from .render import render_pixels
-
-        x = _hermite(X, V, self.times, t0, self.frame_dt)
-
-        def one(args):
-            xt, pt, mt = args
-            pred = render_pixels(self.renderer, self.positions3(xt), self.cameras, pt, silhouette_only=True)
-            return pred - mt
-
-        r = jax.lax.map(one, (x, self.pixels, self.target))
-        return (self.scale[:, None, None] * r).reshape(-1)
+    return jax.jvp(f, (params,), (tangent,))
 
 
 @eqx.filter_jit
-def _obs_eval(obs, X, V, t0):
-    return obs.residuals(X, V, t0)
+def _obs_eval(term, frames, t0):
+    return term.residuals(frames, t0)
 
 
 @eqx.filter_jit
-def _obs_jvp(obs, X, V, t0, dX, dV, dt0):
-    return jax.jvp(obs.residuals, (X, V, t0), (dX, dV, dt0))
+def _obs_jvp(term, frames, t0, d_frames, dt0):
+    return jax.jvp(term.residuals, (frames, t0), (d_frames, dt0))
 
 
 @dataclass
@@ -274,127 +168,14 @@ class _Groups:
     sequence: np.ndarray
 
 
-def _track_observable(model, obs: Observation, dtype):
-    pos = np.asarray(obs.positions, float)
-    T, N, D = pos.shape
-    by_id = check_tracks(model, pos, obs.point_ids)
-    valid = ~np.any(np.isnan(pos), axis=-1)
-    count = valid.sum(axis=1) * (D if by_id else 1)
-    if by_id:
-        scale = 1.0 / np.sqrt(np.maximum(count, 1))
-        per_frame = N * D
-    else:
-        scale = 1.0 / np.sqrt(np.maximum(valid.sum(axis=1) + model.num_particles, 1))
-        per_frame = N + model.num_particles
-    o = _TrackResiduals(
-        times=jnp.asarray(obs.times, dtype),
-        target=jnp.asarray(np.where(valid[..., None], pos, 0.0), dtype),
-        valid=jnp.asarray(valid),
-        scale=jnp.asarray(scale, dtype),
-        frame_dt=float(model.frame_dt),
-        by_id=by_id,
-    )
-    groups = np.repeat(np.arange(T), per_frame)
-    return o, groups, np.asarray(obs.times, float), ["tracks"] * T, [f"t={t:.4g}s" for t in obs.times]
-
-
-def _probe_observable(model, params, obs: Observation, extra, dtype, frame_dt):
-    from .model import initial_state
-
-    names = list(obs.probe_names)
-    fns = tuple(probe_function(n, extra) for n in names)
-    pt = np.asarray(obs.probe_times, float)
-    pv = np.asarray(obs.probe_values, float)
-    valid = np.isfinite(pt) & np.isfinite(pv) & (pt >= 0)
-    # groups: frame-length time bins of each probe (samples in a bin share one error)
-    bins = np.where(valid, np.floor(np.where(valid, pt, 0.0) / frame_dt + 1e-6).astype(int), -1)
-    gid = np.full(pt.shape, -1)
-    gtime, gkind, glabel = [], [], []
-    for p, n in enumerate(names):
-        for b in np.unique(bins[p][bins[p] >= 0]):
-            sel = bins[p] == b
-            gid[p, sel] = len(gtime)
-            gtime.append(float(np.mean(pt[p, sel])))
-            gkind.append(f"probe:{n}")
-            glabel.append(n)
-    counts = np.bincount(gid[gid >= 0], minlength=len(gtime))
-    scale = np.where(gid >= 0, 1.0 / np.sqrt(np.maximum(counts[np.maximum(gid, 0)], 1)), 0.0)
-    st = initial_state(model, X.strip(params))
-    o = _ProbeResiduals(
-        times=jnp.asarray(np.where(valid, pt, 0.0), dtype),
-        target=jnp.asarray(np.where(valid, pv, 0.0), dtype),
-        valid=jnp.asarray(valid),
-        scale=jnp.asarray(scale, dtype),
-        mass=st.mass,
-        vol0=st.vol0,
-        model=model,
-        fns=fns,
-        frame_dt=float(frame_dt),
-    )
-    entry_group = gid.reshape(-1)  # invalid entries: -1 (weight 0)
-    return o, entry_group, np.asarray(gtime), gkind, glabel
-
-
-def lifted_layers(model) -> np.ndarray:
-    """z offsets of the layers a 2D scene is lifted to for rendering (a slab of 3 particle spacings)."""
-    h = float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** 0.5
-    return np.array([-h, 0.0, h])
-
-
 def silhouette_renderer(model, **options):
-    """A volume renderer covering the scene's domain at the particle spacing (2D scenes: lifted).
-
-    Its level-set silhouettes are softer than the renderer's default (``sharpness = 10``):
+    """The renderer of silhouette data: :func:`jaxmpm.identify.residuals.make_fit_renderer`'s
+    volume renderer with level-set silhouettes softer than its default (``sharpness = 10``):
     compared with binary masks this leaves a small error floor at the true parameters but
     widens the basin in which the Gauss–Newton screen and the refits see a body that is
-    displaced by several pixels.
-    """
-    from .render import VolumeRenderer
-
+    displaced by several pixels."""
     options.setdefault("sharpness", 10.0)
-    dim = model.dim
-    h = float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** (1.0 / dim)
-    lo, hi = np.asarray(model.grid.lo, float), np.asarray(model.grid.hi, float)
-    if dim == 2:
-        lo, hi = np.append(lo, -1.5 * h), np.append(hi, 1.5 * h)
-    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
-    return VolumeRenderer.for_particles(corners, spacing=h, **options)
-
-
-def _silhouette_observable(model, obs: Observation, renderer, dtype, num_pixels: int, seed: int = 0):
-    from .render import Camera
-
-    masks = np.asarray(obs.masks)
-    V, T, H, W = masks.shape
-    cams = Camera(np.asarray(obs.intrinsics, float), np.asarray(obs.cam_to_world, float), W, H).astype(dtype)
-    renderer = renderer if renderer is not None else silhouette_renderer(model)
-    n = int(min(num_pixels, H * W))
-    rng = np.random.default_rng(seed)
-    pix = np.zeros((T, V, n), np.int32)
-    from scipy.ndimage import binary_dilation
-
-    for v in range(V):
-        union = binary_dilation(np.any(masks[v] > 127, axis=0), iterations=max(2, int(0.08 * max(H, W))))
-        cand = np.flatnonzero(union)
-        for t in range(T):
-            k = (3 * n) // 4 if len(cand) else 0
-            a = rng.choice(cand, size=k, replace=k > len(cand)) if k else np.zeros(0, int)
-            b = rng.choice(H * W, size=n - k, replace=False)
-            pix[t, v] = np.concatenate([a, b])
-    flat = masks.reshape(V, T, H * W).transpose(1, 0, 2).astype(float) / 255.0  # (T, V, HW)
-    target = np.take_along_axis(flat, pix, axis=2)
-    o = _SilhouetteResiduals(
-        times=jnp.asarray(obs.times, dtype),
-        target=jnp.asarray(target, dtype),
-        pixels=jnp.asarray(pix),
-        scale=jnp.asarray(np.full(T, 1.0 / math.sqrt(V * n)), dtype),
-        cameras=cams,
-        renderer=renderer,
-        lift=jnp.asarray(lifted_layers(model) if model.dim == 2 else np.zeros(0), dtype),
-        frame_dt=float(model.frame_dt),
-    )
-    groups = np.repeat(np.arange(T), V * n)
-    return o, groups, np.asarray(obs.times, float), ["silhouette"] * T, [f"t={t:.4g}s" for t in obs.times]
+    return make_fit_renderer("volume", model, **options)
 
 
 # =========================================================================== the problem
@@ -426,29 +207,35 @@ class _SeqData:
         self.params = X.enable(seq.model, base, self.candidates)
         self.specs = [s for e in self.candidates for s in X.parameter_specs(seq.model, base, e)]
         obs = seq.observation
-        parts = []
+        model = seq.model
+        every = np.ones(len(obs.times), bool)
+        parts = []  # (term, layout)
         t_all = [np.asarray(obs.times, float)]
         if obs.positions is not None:
-            parts.append(_track_observable(seq.model, obs, dtype))
+            parts.append(track_term(model, obs, every, dtype, normalise="group"))
         if obs.masks is not None:
-            parts.append(_silhouette_observable(seq.model, obs, seq.renderer, dtype, num_pixels))
+            H, W = np.shape(obs.masks)[2:4]
+            renderer = seq.renderer if seq.renderer is not None else silhouette_renderer(model)
+            parts += image_terms(model, obs, every, dtype, weights={"silhouette": 1.0}, renderer=renderer,
+                                 num_pixels=num_pixels, margin=max(2, int(0.08 * max(H, W))), normalise="group",
+                                 lift=lifted_layers(model) if model.dim == 2 else None)
         if obs.probe_names is not None:
-            parts.append(_probe_observable(seq.model, base, obs, seq.probes, dtype, seq.model.frame_dt))
+            parts.append(probe_term(model, obs, None, dtype, extra=seq.probes, normalise="group"))
             pt = np.asarray(obs.probe_times, float)
             t_all.append(pt[np.isfinite(pt)])
         if not parts:
             raise ObservationError(f"sequence {seq.name!r}: no tracks, masks or probes to compare with")
-        self.observables = [p[0] for p in parts]
+        self.observables = [term for term, _ in parts]
         tmax = max(float(np.max(t)) for t in t_all if len(t))
-        self.frames = max(3, int(math.ceil(tmax / seq.model.frame_dt - 1e-6)) + 1 + frames_margin)
+        self.frames = max(3, int(math.ceil(tmax / model.frame_dt - 1e-6)) + 1 + frames_margin)
         # groups, numbered locally then offset by the problem
         eg, gt, gk, gl = [], [], [], []
-        for _, egroup, gtime, gkind, glabel in parts:
+        for _, layout in parts:
             off = len(gt)
-            eg.append(np.where(egroup >= 0, egroup + off, -1))
-            gt += list(gtime)
-            gk += list(gkind)
-            gl += list(glabel)
+            eg.append(np.where(layout.groups >= 0, layout.groups + off, -1))
+            gt += list(layout.group_times)
+            gk += list(layout.group_kinds)
+            gl += list(layout.group_labels)
         self.entry_group = np.concatenate(eg)
         self.group_time = np.asarray(gt, float)
         self.group_kind = gk
@@ -602,8 +389,8 @@ class _Problem:
                 continue
             p = self.unpack(jnp.asarray(theta), i)
             model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
-            x, v, ok = _rollout(model, p, sd.frames)
-            out.append((x, v, bool(ok), p))
+            frames, ok = _rollout(model, p, sd.frames)
+            out.append((frames, bool(ok), p))
         return out
 
     def residuals(self, theta, substeps_factor: int = 1, trajectories=None, training_only: bool = False) -> np.ndarray:
@@ -617,9 +404,9 @@ class _Problem:
             if tr is None:
                 rs.append(np.zeros(sum(sd.sizes)))
                 continue
-            x, v, ok, p = tr
+            frames, ok, p = tr
             t0 = self._t0(p)
-            parts = [np.asarray(_obs_eval(o, x, v, t0), float) for o in sd.observables]
+            parts = [np.asarray(_obs_eval(o, frames, t0), float) for o in sd.observables]
             sd.sizes = [len(q) for q in parts]
             r = np.concatenate(parts)
             if not ok:
@@ -648,9 +435,9 @@ class _Problem:
                     blocks.append(np.zeros(sum(sd.sizes)))
                     continue
                 self.jvps += 1
-                x, v, dx, dv = _rollout_jvp(sd.model, p, tp, sd.frames)
+                frames, d_frames = _rollout_jvp(sd.model, p, tp, sd.frames)
                 for o in sd.observables:
-                    _, dr = _obs_jvp(o, x, v, t0, dx, dv, dt0)
+                    _, dr = _obs_jvp(o, frames, t0, d_frames, dt0)
                     blocks.append(np.asarray(dr, float))
             J[:, j] = np.concatenate(blocks)
         J[self.groups.entry_group < 0] = 0.0

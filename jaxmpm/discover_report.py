@@ -50,28 +50,27 @@ def predictions(discovery, theta, substeps_factor: int = 1):
     times (tracks), ``"probes"`` ``(P, Tp)``, ``"alpha"`` ``(V, T, n)`` and the residual
     vector ``"r"`` of that sequence.
     """
-    from .discover import _hermite
+    from .identify.residuals import Probes, Silhouette, hermite
 
     problem = discovery.problem
     trajs = problem.trajectories(theta, substeps_factor)
     r_all = problem.residuals(theta, trajectories=trajs)
     out, start = [], 0
-    for sd, (x, v, ok, p) in zip(problem.seqs, trajs):
+    for sd, (frames, ok, p) in zip(problem.seqs, trajs):
+        x, v = frames.x, frames.v
         t0 = problem._t0(p)
         item = {"ok": ok, "frames_x": np.asarray(x), "params": p}
         obs = sd.seq.observation
         if obs.positions is not None:
-            item["x"] = np.asarray(_hermite(x, v, jnp.asarray(obs.times, x.dtype), t0, sd.model.frame_dt))
+            item["x"] = np.asarray(hermite(x, v, jnp.asarray(obs.times, x.dtype), t0, sd.model.frame_dt))
         for o in sd.observables:
-            name = type(o).__name__
-            if name == "_ProbeResiduals":
-                P, Pdot = o._frame_values(x, v)
-                vals = [np.asarray(_hermite(P[:, i], Pdot[:, i], o.times[i], t0, o.frame_dt)) for i in range(len(o.fns))]
+            if isinstance(o, Probes):
+                P, Pdot = o.frame_values(frames)
+                vals = [np.asarray(hermite(P[:, i], Pdot[:, i], o.times[i], t0, o.frame_dt)) for i in range(len(o.fns))]
                 item["probes"] = np.stack(vals)
-            if name == "_SilhouetteResiduals":
-                xs = _hermite(x, v, o.times, t0, o.frame_dt)
+            if isinstance(o, Silhouette):
                 item["silhouette"] = o
-                item["x_sil"] = np.asarray(xs)
+                item["x_sil"] = np.asarray(hermite(x, v, o.times, t0, o.frame_dt))
         n = int(sum(sd.sizes))
         item["r"] = r_all[start:start + n]
         start += n
@@ -440,7 +439,7 @@ def plot_silhouettes(path, obs, sil, x_base, x_ext):
         for i, xs in ((1, x_base), (2, x_ext)):
             if xs is None:
                 continue
-            a = render_pixels(sil.renderer, sil.positions3(jnp.asarray(xs[t])), sil.cameras, allpix, silhouette_only=True)
+            a = render_pixels(sil.renderer, sil.lifted(jnp.asarray(xs[t])), sil.cameras, allpix, silhouette_only=True)
             axes[i, j].imshow(np.asarray(a[0]).reshape(H, W), cmap="gray", vmin=0, vmax=1)
             axes[i, j].contour(masks[0, t] > 127, levels=[0.5], colors="r", linewidths=0.6)
             axes[i, j].set_title(("base" if i == 1 else "extended") + " (red: observed)", fontsize=7)

@@ -41,7 +41,7 @@ def _hidden(kind, extension=None, value=None, seed=0):
     m, p = scene.model, scene.params
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]  # the layout discover compiles
     truth = X.enable(m, p, ids, {extension: value} if extension else None)
-    x = np.asarray(_rollout(m, truth, FRAMES)[0], float)
+    x = np.asarray(_rollout(m, truth, FRAMES)[0].x, float)
     x = x + NOISE * np.random.default_rng(seed).standard_normal(x.shape)
     obs = Observation(times=np.arange(FRAMES) * m.frame_dt, positions=x, point_ids="particles")
     return scene, obs
@@ -124,7 +124,7 @@ def test_gravity_error_is_found_from_silhouettes():
     m = scene.model
     truth = X.enable(m, scene.params, [e for e in X.EXTENSIONS if X.applicable(m, e) is None],
                      {"gravity": {"delta": [0.0, -2.0]}})
-    x = np.asarray(_rollout(m, truth, FRAMES)[0])
+    x = np.asarray(_rollout(m, truth, FRAMES)[0].x)
     # the 2D scene as a thin slab at z = 0, seen from the front by one camera, 40x40 pixels
     x3 = np.concatenate([np.concatenate([x, np.full(x.shape[:-1] + (1,), z)], -1) for z in lifted_layers(m)], axis=1)
     cam = look_at((0.5, 0.5, 2.0), (0.5, 0.5, 0.0), fov_deg=30.0, width=64)

@@ -35,7 +35,7 @@ VALUES = {
 def _x(m, p, frames=6):
     from jaxmpm.discover import _rollout  # cached on the scene's structure: one compile per structure
 
-    return np.asarray(_rollout(m, p, frames)[0])
+    return np.asarray(_rollout(m, p, frames)[0].x)
 
 
 def test_null_values_reproduce_the_base_model_and_each_extension_acts():

@@ -1,9 +1,16 @@
-"""Loss terms for identification: tracks, silhouettes, masked RGB and probes.
+"""The one residual system of identification: tracks, silhouettes, masked RGB and probes.
 
-Every term turns a simulated :class:`~jaxmpm.step.Trajectory` into a **residual vector**
-``r`` scaled so that ``sum(r**2) = weight * (mean squared error of the term)``; the sum of
-squares of all terms' residuals is the scalar loss. Levenberg–Marquardt works on the
-residuals; Adam and BFGS on the scalar.
+Each kind of data is a :class:`Term` (an equinox module) built with its :class:`Layout` by
+:func:`track_term`, :func:`image_terms` or :func:`probe_term`. A term reads a rollout's
+:class:`Frames` (per-frame positions, velocities, masses and volumes) at the observed times,
+shifted by a time offset ``t0`` (cubic Hermite interpolation between frames: exact at the
+frames, differentiable in ``t0``), and returns a **residual vector**. How it is scaled is
+the consumer's choice (:data:`NORMALISATIONS`): for :func:`jaxmpm.fit`
+(:func:`build_objective`) ``sum(r**2) = weight * (mean squared error of the term)``, so the
+sum of squares of all terms' residuals is the scalar loss (Levenberg–Marquardt works on the
+residuals; Adam and BFGS on the scalar); for :func:`jaxmpm.discover` the sum over each
+group of entries (one observed frame, one probe time bin) is that group's mean squared error.
+A sweep of a loss uses :meth:`Objective.residuals_of` as its function of the trajectory.
 
 =============  ==========================================  ==============================
 term           compares                                    residual entries
@@ -24,7 +31,8 @@ per call when a PRNG key is given (Adam). Pixels are drawn mostly from the dilat
 the observed masks of each view and partly uniformly over the image, so that a simulated
 body that strays far from the observed one is still seen.
 
-Probes are functions ``fn(state, model) -> scalar`` looked up by name
+Probes are functions ``fn(state, model) -> scalar`` of a state holding the frame's
+positions, velocities, masses and reference volumes, looked up by name
 (:func:`probe_function`): ``front_x`` (the largest x of any particle, plus half a particle
 spacing: the leading edge), ``back_x``, ``top_y``/``height`` (vertical), ``centroid_x``,
 ..., and parameterised names such as ``gauge@0.3`` (the height of the material column at
@@ -35,19 +43,23 @@ x = 0.3 m; ``gauge@0.3,0.1`` at x = 0.3, z = 0.1 in 3D). Register others with
 
 from __future__ import annotations
 
+import abc
 import math
 import re
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+import equinox as eqx
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float, Int
 
 from ..errors import JaxmpmError, ObservationError
 from ..model import Model, Params
 from ..observe import Observation
-from ..state import State
+from ..state import State, make_state
 from ..step import Trajectory, simulate
 
 __all__ = [
@@ -61,9 +73,24 @@ __all__ = [
     "top",
     "centroid",
     "gauge",
-    "frame_interpolation",
     "frames_needed",
+    "hermite",
     "chamfer_residuals",
+    "check_tracks",
+    "Frames",
+    "Term",
+    "Layout",
+    "NORMALISATIONS",
+    "Tracks",
+    "Probes",
+    "Silhouette",
+    "MaskedRGB",
+    "track_term",
+    "probe_term",
+    "image_terms",
+    "make_fit_renderer",
+    "lifted_layers",
+    "particle_colors",
     "Objective",
     "build_objective",
 ]
@@ -207,25 +234,25 @@ def probe_function(name: str, extra: dict[str, ProbeFn] | None = None) -> ProbeF
 # =========================================================================== time sampling
 
 
-def frame_interpolation(frame_dt: float, times: np.ndarray, num_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frame indices ``i0, i1`` and weights ``a`` so that ``x(t) = (1-a) x[i0] + a x[i1]``."""
-    s = np.asarray(times, float) / frame_dt
-    i0 = np.clip(np.floor(s + 1e-6).astype(int), 0, num_frames - 1)
-    i1 = np.minimum(i0 + 1, num_frames - 1)
-    a = np.where(i1 > i0, np.clip(s - i0, 0.0, 1.0), 0.0)
-    a = np.where(a < 1e-6, 0.0, a)
-    return i0, i1, a
-
-
 def frames_needed(model: Model, times: np.ndarray) -> int:
     """Output frames (including t = 0) a simulation needs to cover ``times``."""
     return max(2, int(math.ceil(float(np.max(times)) / model.frame_dt - 1e-6)) + 1)
 
 
-def _interp(arr, i0, i1, a):
-    """``(1-a) arr[i0] + a arr[i1]`` along the leading axis (``a`` broadcast on the right)."""
-    a = jnp.asarray(a, arr.dtype).reshape(a.shape + (1,) * (arr.ndim - 1))
-    return (1.0 - a) * arr[i0] + a * arr[i1]
+def hermite(P, Pdot, times, t0, frame_dt: float):
+    """Values at ``times - t0`` from per-frame values ``P (F, ...)`` and their time derivatives
+    ``Pdot`` (cubic Hermite: exact at the frames, C1 in ``t0``; clamped to the simulated span)."""
+    F = P.shape[0]
+    dtype = P.dtype
+    s = (jnp.asarray(times, dtype) - jnp.asarray(t0, dtype)) / frame_dt
+    s = jnp.clip(s, 0.0, F - 1.0)
+    i0 = jnp.clip(jnp.floor(jax.lax.stop_gradient(s) + 1e-6), 0, F - 2).astype(jnp.int32)
+    u = s - i0.astype(dtype)
+    u2, u3 = u * u, u * u * u
+    h00, h10, h01, h11 = 2 * u3 - 3 * u2 + 1, u3 - 2 * u2 + u, -2 * u3 + 3 * u2, u3 - u2
+    shape = (-1,) + (1,) * (P.ndim - 1)
+    c = lambda h: h.reshape(shape)  # noqa: E731
+    return c(h00) * P[i0] + c(h10) * frame_dt * Pdot[i0] + c(h01) * P[i0 + 1] + c(h11) * frame_dt * Pdot[i0 + 1]
 
 
 # =========================================================================== chamfer
@@ -261,18 +288,7 @@ def chamfer_residuals(sim, obs, valid):
     return jnp.sqrt(jnp.concatenate([obs_to_sim, sim_to_obs]) + 1e-12)
 
 
-# =========================================================================== terms
-
-
-@dataclass
-class _Term:
-    """One loss term (internal): ``residuals(traj, key) -> (R,)`` already weighted."""
-
-    name: str
-    weight: float
-    count: int  # number of informative residual entries (for the Gauss–Newton covariance)
-    fn: Callable[[Trajectory, Any], jnp.ndarray]
-    info: dict = field(default_factory=dict)
+# =========================================================================== data checks and pixels
 
 
 def check_tracks(model: Model, positions: np.ndarray, point_ids) -> bool:
@@ -287,70 +303,6 @@ def check_tracks(model: Model, positions: np.ndarray, point_ids) -> bool:
             f"observation has point_ids='particles' with {n} points but the scene has {model.num_particles} particles"
         )
     return by_id
-
-
-def _track_term(model: Model, obs: Observation, sel: np.ndarray, frames: int, weight: float) -> _Term:
-    positions = np.asarray(obs.positions, float)[sel]
-    T, N, D = positions.shape
-    by_id = check_tracks(model, positions, obs.point_ids)
-    valid = ~np.any(np.isnan(positions), axis=-1)
-    if not valid.any():
-        raise ObservationError("the observed tracks are all NaN in the fitted time window")
-    i0, i1, a = frame_interpolation(model.frame_dt, np.asarray(obs.times, float)[sel], frames)
-    dtype = model.bodies[0].x0.dtype
-    obs_j = jnp.asarray(np.where(valid[..., None], positions, 0.0), dtype)
-    valid_j = jnp.asarray(valid)
-    sw = math.sqrt(weight)
-
-    if by_id:
-        scale = sw / math.sqrt(max(int(valid.sum()), 1))
-
-        def fn(traj, key=None):
-            x = _interp(traj.x, i0, i1, a)
-            r = jnp.where(valid_j[..., None], x - obs_j, 0.0)
-            return scale * r.reshape(-1)
-
-        count = int(valid.sum()) * D
-    else:
-
-        def fn(traj, key=None):
-            x = _interp(traj.x, i0, i1, a)
-            r = jax.lax.map(lambda args: chamfer_residuals(*args), (x, obs_j, valid_j))
-            return (sw / math.sqrt(r.size)) * r.reshape(-1)
-
-        count = int(valid.sum()) + T * model.num_particles
-    return _Term("tracks", weight, count, fn, {"points": N, "chamfer": not by_id})
-
-
-def _probe_term(model: Model, obs: Observation, until: float | None, frames: int, weight: float, extra) -> tuple[_Term, dict]:
-    names = list(obs.probe_names)
-    fns = {n: probe_function(n, extra) for n in names}
-    pt = np.asarray(obs.probe_times, float)
-    pv = np.asarray(obs.probe_values, float)
-    keep = np.isfinite(pv) & np.isfinite(pt) & (pt >= 0)
-    if until is not None:
-        keep &= pt <= until + 1e-4 * model.frame_dt
-    if not keep.any():
-        raise ObservationError("the observed probe values are all NaN (or outside the fitted time window)")
-    dtype = model.bodies[0].x0.dtype
-    rows = []
-    for p, n in enumerate(names):
-        t = np.where(keep[p], pt[p], 0.0)
-        i0, i1, a = frame_interpolation(model.frame_dt, t, frames)
-        rows.append((n, i0, i1, a, jnp.asarray(np.where(keep[p], pv[p], 0.0), dtype), jnp.asarray(keep[p])))
-    scale = math.sqrt(weight) / math.sqrt(int(keep.sum()))
-
-    def fn(traj, key=None):
-        out = []
-        for n, i0, i1, a, values, ok in rows:
-            sim = _interp(traj.extra[n], i0, i1, a)
-            out.append(jnp.where(ok, sim - values, 0.0))
-        return scale * jnp.concatenate(out)
-
-    return _Term("probes", weight, int(keep.sum()), fn, {"names": names}), fns
-
-
-# --------------------------------------------------------------------------- images
 
 
 def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -396,19 +348,32 @@ def _random_pixels(key, cand_table, cand_count, T, V, HW, n, n_uni):
     return jnp.concatenate([a, b], axis=-1)
 
 
-def make_fit_renderer(kind, model: Model, **options):
-    """A renderer covering the scene's whole domain at the particle spacing (3D scenes only).
+def particle_spacing(model: Model) -> float:
+    """The particle spacing ``h = V0^(1/D)`` of the largest particle (m)."""
+    return float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** (1.0 / model.dim)
 
-    ``kind`` is ``"volume"``, ``"surfels"`` or a renderer instance (returned unchanged).
+
+def lifted_layers(model: Model) -> np.ndarray:
+    """z offsets of the layers a 2D scene is lifted to for rendering (a slab of 3 particle spacings)."""
+    h = particle_spacing(model)
+    return np.array([-h, 0.0, h])
+
+
+def make_fit_renderer(kind, model: Model, **options):
+    """A renderer covering the scene's whole domain at the particle spacing.
+
+    ``kind`` is ``"volume"``, ``"surfels"`` or a renderer instance (returned unchanged). A 2D
+    scene is rendered as a slab ``±1.5 h`` thick around z = 0 (its particles lifted to the
+    layers :func:`lifted_layers`).
     """
     from ..render import AbstractRenderer, make_renderer
 
     if isinstance(kind, AbstractRenderer):
         return kind
-    if model.dim != 3:
-        raise JaxmpmError("image losses (silhouettes, RGB) need a 3D scene")
-    h = float(np.max(np.concatenate([np.asarray(b.vol0) for b in model.bodies]))) ** (1.0 / 3.0)
+    h = particle_spacing(model)
     lo, hi = np.asarray(model.grid.lo, float), np.asarray(model.grid.hi, float)
+    if model.dim == 2:
+        lo, hi = np.append(lo, -1.5 * h), np.append(hi, 1.5 * h)
     corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
     return make_renderer(kind, corners, spacing=h, **options)
 
@@ -432,91 +397,6 @@ def _check_cameras(obs: Observation, dtype=jnp.float32):
                 f"do not have the size the intrinsics were made for (expected about {2 * cx:g}x{2 * cy:g})"
             )
     return Camera(K, np.asarray(obs.cam_to_world, float), W, H, dtype=dtype)
-
-
-def _image_terms(
-    model, obs, sel, frames, weights, renderer, num_pixels, uniform_fraction, margin, seed, colors
-) -> list[_Term]:
-    from ..render import render_pixels
-    from ..render.losses import as_unit_float
-
-    dtype = model.bodies[0].x0.dtype
-    cams = _check_cameras(obs, dtype)
-    V, H, W = cams.num_views, cams.height, cams.width
-    times = np.asarray(obs.times, float)[sel]
-    T = len(times)
-    i0, i1, a = frame_interpolation(model.frame_dt, times, frames)
-    masks = None if obs.masks is None else np.asarray(obs.masks)[:, sel]
-    images = None if obs.images is None else np.asarray(obs.images)[:, sel]
-    n = int(min(num_pixels, H * W))
-    if margin is None:
-        margin = max(2, int(round(0.05 * max(H, W))))
-    cand = _candidates(masks, margin) if masks is not None else [np.arange(H * W)] * V
-    cand = [c if len(c) else np.arange(H * W) for c in cand]
-    rng = np.random.default_rng(seed)
-    fixed = jnp.asarray(_fixed_pixels(rng, cand, T, H, W, n, uniform_fraction))
-    n_uni = int(round(uniform_fraction * n))
-    L = max(len(c) for c in cand)
-    cand_table = jnp.asarray(np.stack([np.resize(c, L) for c in cand]).astype(np.int32))
-    cand_count = jnp.asarray([len(c) for c in cand], jnp.int32)
-    # (T, V, H*W[, 3]) targets, frames first so they can be gathered per frame
-    tmask = None if masks is None else jnp.asarray(np.swapaxes(masks, 0, 1).reshape(T, V, H * W))
-    timg = None if images is None else jnp.asarray(np.swapaxes(images, 0, 1).reshape(T, V, H * W, 3))
-    renderer = make_fit_renderer(renderer, model)
-    if isinstance(colors, str) and colors == "auto":
-        colors = None if images is None else particle_colors(model, obs, cams)
-    col = None if colors is None else jnp.asarray(colors, dtype)
-
-    def pixels_for(key):
-        if key is None:
-            return fixed
-        return _random_pixels(key, cand_table, cand_count, T, V, H * W, n, n_uni)
-
-    def positions(traj):
-        return _interp(traj.x, i0, i1, a)
-
-    terms = []
-    w_sil = weights.get("silhouette", 0.0)
-    if masks is not None and w_sil > 0:
-        scale = math.sqrt(w_sil / (T * V * n))
-
-        def sil(traj, key=None):
-            pix = pixels_for(key)
-            x = positions(traj)
-
-            def one(args):
-                xt, pt, mt = args
-                pred = render_pixels(renderer, xt, cams, pt, silhouette_only=True)
-                target = as_unit_float(jax.vmap(lambda m, p: m[p])(mt, pt), dtype)
-                return pred - target
-
-            return scale * jax.lax.map(one, (x, pix, tmask)).reshape(-1)
-
-        terms.append(_Term("silhouette", w_sil, T * V * n, sil, {"pixels": n, "views": V}))
-    w_rgb = weights.get("rgb", 0.0)
-    if images is not None and w_rgb > 0:
-        # weights: the observed mask (PAC-NeRF's masked RGB); all sampled pixels without masks
-        count = T * V * n * 3
-
-        def rgb(traj, key=None):
-            pix = pixels_for(key)
-            x = positions(traj)
-
-            def one(args):
-                xt, pt, it, mt = args
-                pred = render_pixels(renderer, xt, cams, pt, col).rgb
-                target = as_unit_float(jax.vmap(lambda im, p: im[p])(it, pt), dtype)
-                if mt is None:
-                    m = jnp.ones(pt.shape, dtype)
-                else:
-                    m = as_unit_float(jax.vmap(lambda mm, p: mm[p])(mt, pt), dtype)
-                return m[..., None] * (pred - target), jnp.sum(m)
-
-            r, msum = jax.lax.map(one, (x, pix, timg, tmask))
-            return math.sqrt(w_rgb / 3.0) * r.reshape(-1) / jnp.sqrt(jnp.maximum(jnp.sum(msum), 1.0))
-
-        terms.append(_Term("rgb", w_rgb, count, rgb, {"pixels": n, "views": V}))
-    return terms
 
 
 def particle_colors(model: Model, obs: Observation, cams=None) -> np.ndarray:
@@ -547,6 +427,334 @@ def particle_colors(model: Model, obs: Observation, cams=None) -> np.ndarray:
     return np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], mean).astype(np.float32)
 
 
+# =========================================================================== terms
+
+
+class Frames(eqx.Module):
+    """What the residual terms read from a rollout: per-frame positions and velocities and the
+    particles' masses and reference volumes (frame 0 is the initial state).
+
+    Attributes:
+        x, v: ``(F, N, D)`` positions (m) and velocities (m/s) at the output frames.
+        mass: ``(N,)`` kg (kg/m in 2D); vol0: ``(N,)`` m^3 (m^2 in 2D).
+    """
+
+    x: Float[Array, "F N D"]
+    v: Float[Array, "F N D"]
+    mass: Float[Array, " N"]
+    vol0: Float[Array, " N"]
+
+    @classmethod
+    def of(cls, traj: Trajectory) -> "Frames":
+        return cls(traj.x, traj.v, traj.final.mass, traj.final.vol0)
+
+
+class Term(eqx.Module):
+    """The residuals of one kind of data (abstract; the concrete terms are final).
+
+    ``residuals(frames, t0, key=None) -> (M,)`` compares a rollout's :class:`Frames` with the
+    data at the observed times shifted by ``t0`` (s; cubic Hermite interpolation between
+    frames, :func:`hermite`). Entries are scaled as the term's :class:`Layout` says. ``key``
+    (image terms only) draws a fresh random pixel batch; without it the batch is fixed.
+    """
+
+    frame_dt: float = eqx.field(static=True)
+
+    @abc.abstractmethod
+    def residuals(self, frames: Frames, t0, key=None) -> Float[Array, " M"]:
+        """The scaled residual vector."""
+
+
+@dataclass
+class Layout:
+    """Host-side description of a term's residual entries.
+
+    Attributes:
+        name: ``"tracks"``, ``"silhouette"``, ``"rgb"`` or ``"probes"``.
+        weight: the term's weight.
+        count: informative residual entries (the Gauss–Newton covariance's sample size).
+        groups: ``(M,)`` per entry its group, entries of one group sharing one error (one
+            observed frame; one frame-length time bin of a probe); ``-1`` for entries that carry
+            no data (NaN or out-of-window samples: their residual is 0).
+        group_times, group_kinds, group_labels: per group its time (s), kind and a label.
+        info: details for reports (points, pixels, views, probe names, ...).
+    """
+
+    name: str
+    weight: float
+    count: int
+    groups: np.ndarray
+    group_times: np.ndarray
+    group_kinds: list
+    group_labels: list
+    info: dict = field(default_factory=dict)
+
+
+#: How a term scales its residuals: ``"term"``: ``sum(r**2) = weight * (the term's mean
+#: squared error)`` (:func:`jaxmpm.fit`); ``"group"``: the sum of squares over each group is
+#: that group's mean squared error (:func:`jaxmpm.discover`'s per-frame statistics).
+NORMALISATIONS = ("term", "group")
+
+
+def _check_normalise(normalise: str) -> None:
+    if normalise not in NORMALISATIONS:
+        raise JaxmpmError(f"normalise must be one of {NORMALISATIONS}, got {normalise!r}")
+
+
+def _frame_labels(times) -> list[str]:
+    return [f"t={t:.4g}s" for t in times]
+
+
+class Tracks(Term):
+    """Tracked points: per point and coordinate ``x_sim − x_obs`` when the points are the
+    particles (``point_ids == "particles"``), else the Chamfer distances both ways per frame."""
+
+    times: Float[Array, " T"]
+    target: Float[Array, "T M D"]
+    valid: Bool[Array, "T M"]
+    scale: Float[Array, " T"]
+    by_id: bool = eqx.field(static=True)
+
+    def residuals(self, frames: Frames, t0, key=None):
+        x = hermite(frames.x, frames.v, self.times, t0, self.frame_dt)  # (T, N, D)
+        if self.by_id:
+            r = jnp.where(self.valid[..., None], x - self.target, 0.0)
+            return (self.scale[:, None, None] * r).reshape(-1)
+        r = jax.lax.map(lambda args: chamfer_residuals(*args), (x, self.target, self.valid))
+        return (self.scale[:, None] * r).reshape(-1)
+
+
+def track_term(model: Model, obs: Observation, sel: np.ndarray, dtype, *, normalise: str = "term",
+               weight: float = 1.0) -> tuple[Tracks, Layout]:
+    """The tracks term of the observed times ``sel`` (boolean ``(T_obs,)``)."""
+    _check_normalise(normalise)
+    positions = np.asarray(obs.positions, float)[sel]
+    times = np.asarray(obs.times, float)[sel]
+    T, N, D = positions.shape
+    by_id = check_tracks(model, positions, obs.point_ids)
+    valid = ~np.any(np.isnan(positions), axis=-1)
+    if not valid.any():
+        raise ObservationError("the observed tracks are all NaN in the fitted time window")
+    per_frame = N * D if by_id else N + model.num_particles
+    if normalise == "term":  # the mean squared distance per point (m^2), times the weight
+        n = int(valid.sum()) if by_id else T * per_frame
+        scale = np.full(T, math.sqrt(weight / max(n, 1)))
+    else:  # each frame's mean squared error per coordinate (per distance for Chamfer)
+        scale = 1.0 / np.sqrt(np.maximum(valid.sum(axis=1) * D if by_id else valid.sum(axis=1) + model.num_particles, 1))
+    term = Tracks(frame_dt=float(model.frame_dt), times=jnp.asarray(times, dtype),
+                  target=jnp.asarray(np.where(valid[..., None], positions, 0.0), dtype), valid=jnp.asarray(valid),
+                  scale=jnp.asarray(scale, dtype), by_id=by_id)
+    count = int(valid.sum()) * D if by_id else int(valid.sum()) + T * model.num_particles
+    layout = Layout("tracks", weight, count, np.repeat(np.arange(T), per_frame), times, ["tracks"] * T,
+                    _frame_labels(times), {"points": N, "chamfer": not by_id})
+    return term, layout
+
+
+class Probes(Term):
+    """Named time series of the state (:func:`probe_function`): ``probe_sim − probe_obs`` per
+    sample. Probe functions see a state with the frame's positions, velocities, masses and
+    reference volumes; their time derivatives for the interpolation come from a JVP along
+    the velocities."""
+
+    times: Float[Array, "P Tp"]
+    target: Float[Array, "P Tp"]
+    valid: Bool[Array, "P Tp"]
+    scale: Float[Array, "P Tp"]
+    model: Any
+    fns: tuple = eqx.field(static=True)
+
+    def frame_values(self, frames: Frames):
+        """``(F, P)`` probe values at the frames and their time derivatives."""
+
+        def one(x, v):
+            st = make_state(x, v, frames.mass, frames.vol0)
+            vals = [jax.jvp(lambda y, f=f: f(eqx.tree_at(lambda s: s.x, st, y), self.model), (x,), (v,))
+                    for f in self.fns]
+            return jnp.stack([a for a, _ in vals]), jnp.stack([b for _, b in vals])
+
+        return jax.vmap(one)(frames.x, frames.v)
+
+    def residuals(self, frames: Frames, t0, key=None):
+        P, Pdot = self.frame_values(frames)
+        out = []
+        for p in range(len(self.fns)):
+            sim = hermite(P[:, p], Pdot[:, p], self.times[p], t0, self.frame_dt)
+            out.append(jnp.where(self.valid[p], sim - self.target[p], 0.0) * self.scale[p])
+        return jnp.concatenate(out)
+
+
+def probe_term(model: Model, obs: Observation, until: float | None, dtype, *, extra=None, normalise: str = "term",
+               weight: float = 1.0) -> tuple[Probes, Layout]:
+    """The probes term of the samples at times ``<= until`` (all when None)."""
+    _check_normalise(normalise)
+    names = list(obs.probe_names)
+    fns = tuple(probe_function(n, extra) for n in names)
+    pt = np.asarray(obs.probe_times, float)
+    pv = np.asarray(obs.probe_values, float)
+    keep = np.isfinite(pv) & np.isfinite(pt) & (pt >= 0)
+    if until is not None:
+        keep &= pt <= until + 1e-4 * model.frame_dt
+    if not keep.any():
+        raise ObservationError("the observed probe values are all NaN (or outside the fitted time window)")
+    # groups: frame-length time bins of each probe (samples in a bin share one error)
+    bins = np.where(keep, np.floor(np.where(keep, pt, 0.0) / model.frame_dt + 1e-6).astype(int), -1)
+    gid = np.full(pt.shape, -1)
+    gtime, gkind, glabel = [], [], []
+    for p, n in enumerate(names):
+        for b in np.unique(bins[p][bins[p] >= 0]):
+            here = bins[p] == b
+            gid[p, here] = len(gtime)
+            gtime.append(float(np.mean(pt[p, here])))
+            gkind.append(f"probe:{n}")
+            glabel.append(n)
+    if normalise == "term":
+        scale = np.where(keep, math.sqrt(weight / int(keep.sum())), 0.0)
+    else:
+        counts = np.bincount(gid[gid >= 0], minlength=len(gtime))
+        scale = np.where(gid >= 0, 1.0 / np.sqrt(np.maximum(counts[np.maximum(gid, 0)], 1)), 0.0)
+    term = Probes(frame_dt=float(model.frame_dt), times=jnp.asarray(np.where(keep, pt, 0.0), dtype),
+                  target=jnp.asarray(np.where(keep, pv, 0.0), dtype), valid=jnp.asarray(keep),
+                  scale=jnp.asarray(scale, dtype), model=model, fns=fns)
+    layout = Layout("probes", weight, int(keep.sum()), gid.reshape(-1), np.asarray(gtime), gkind, glabel,
+                    {"names": names})
+    return term, layout
+
+
+# --------------------------------------------------------------------------- images
+
+
+class _PixelTerm(Term):
+    """Image data compared at a batch of pixels per view and frame (abstract)."""
+
+    times: Float[Array, " T"]
+    cameras: Any
+    renderer: Any
+    lift: Float[Array, " L"]  # z offsets of the layers a 2D scene is lifted to (empty in 3D)
+    masks: Any  # (T, V, H*W) uint8 or None
+    fixed: Int[Array, "T V n"]
+    cand_table: Int[Array, "V C"]
+    cand_count: Int[Array, " V"]
+    n_uniform: int = eqx.field(static=True)
+
+    def pixels(self, key):
+        """The fixed batch, or a fresh random one drawn like it for a PRNG key."""
+        if key is None:
+            return self.fixed
+        T, V, n = self.fixed.shape
+        HW = self.masks.shape[-1] if self.masks is not None else self.cameras.height * self.cameras.width
+        return _random_pixels(key, self.cand_table, self.cand_count, T, V, HW, n, self.n_uniform)
+
+    def lifted(self, x):
+        """Positions ``(..., N, D)`` as rendered: 3D as they are, 2D copied onto the layers ``lift``."""
+        if x.shape[-1] == 3:
+            return x
+        layers = [jnp.concatenate([x, jnp.full(x.shape[:-1] + (1,), z, x.dtype)], axis=-1) for z in self.lift]
+        return jnp.concatenate(layers, axis=-2)
+
+    def positions(self, frames: Frames, t0):
+        """``(T, N', 3)`` rendered positions at the observed times."""
+        return self.lifted(hermite(frames.x, frames.v, self.times, t0, self.frame_dt))
+
+
+class Silhouette(_PixelTerm):
+    """Rendered soft silhouettes against the masks: ``alpha − mask`` per sampled pixel."""
+
+    scale: Float[Array, " T"]
+
+    def residuals(self, frames: Frames, t0, key=None):
+        from ..render import render_pixels
+        from ..render.losses import as_unit_float
+
+        pix = self.pixels(key)
+        x = self.positions(frames, t0)
+        dtype = x.dtype
+
+        def one(args):
+            xt, pt, mt = args
+            pred = render_pixels(self.renderer, xt, self.cameras, pt, silhouette_only=True)
+            return pred - as_unit_float(jax.vmap(lambda m, p: m[p])(mt, pt), dtype)
+
+        r = jax.lax.map(one, (x, pix, self.masks))
+        return (self.scale[:, None, None] * r).reshape(-1)
+
+
+class MaskedRGB(_PixelTerm):
+    """Rendered colour against the images where the observed mask is set (PAC-NeRF's ray
+    mask; every sampled pixel without masks): ``m (rgb − image)`` per pixel and channel,
+    normalised by the sampled mask's sum so that ``sum(r**2) = weight × MSE``."""
+
+    images: Any  # (T, V, H*W, 3) uint8
+    colors: Any
+    weight: float = eqx.field(static=True)
+
+    def residuals(self, frames: Frames, t0, key=None):
+        from ..render import render_pixels
+        from ..render.losses import as_unit_float
+
+        pix = self.pixels(key)
+        x = self.positions(frames, t0)
+        dtype = x.dtype
+
+        def one(args):
+            xt, pt, it, mt = args
+            pred = render_pixels(self.renderer, xt, self.cameras, pt, self.colors).rgb
+            target = as_unit_float(jax.vmap(lambda im, p: im[p])(it, pt), dtype)
+            m = jnp.ones(pt.shape, dtype) if mt is None else as_unit_float(jax.vmap(lambda mm, p: mm[p])(mt, pt), dtype)
+            return m[..., None] * (pred - target), jnp.sum(m)
+
+        r, msum = jax.lax.map(one, (x, pix, self.images, self.masks))
+        return math.sqrt(self.weight / 3.0) * r.reshape(-1) / jnp.sqrt(jnp.maximum(jnp.sum(msum), 1.0))
+
+
+def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weights: dict, renderer, num_pixels: int,
+                uniform_fraction: float = 0.25, margin: int | None = None, seed: int = 0, colors=None,
+                lift=None, normalise: str = "term") -> list[tuple[_PixelTerm, Layout]]:
+    """The silhouette and masked-RGB terms (those with a positive weight) of the observed
+    times ``sel``, on one fixed pixel batch per view and frame: ``1 − uniform_fraction`` of
+    it from the union over frames of each view's masks dilated by ``margin`` pixels (default
+    5 % of the image size), the rest uniform over the image. ``lift``: z offsets that lift a
+    2D scene to 3D for rendering."""
+    _check_normalise(normalise)
+    cams = _check_cameras(obs, dtype)
+    V, H, W = cams.num_views, cams.height, cams.width
+    times = np.asarray(obs.times, float)[sel]
+    T = len(times)
+    masks = None if obs.masks is None else np.asarray(obs.masks)[:, sel]
+    images = None if obs.images is None else np.asarray(obs.images)[:, sel]
+    n = int(min(num_pixels, H * W))
+    if margin is None:
+        margin = max(2, int(round(0.05 * max(H, W))))
+    cand = _candidates(masks, margin) if masks is not None else [np.arange(H * W)] * V
+    cand = [c if len(c) else np.arange(H * W) for c in cand]
+    L = max(len(c) for c in cand)
+    shared = dict(
+        frame_dt=float(model.frame_dt), times=jnp.asarray(times, dtype), cameras=cams, renderer=renderer,
+        lift=jnp.asarray(np.zeros(0) if lift is None else lift, dtype),
+        masks=None if masks is None else jnp.asarray(np.swapaxes(masks, 0, 1).reshape(T, V, H * W)),
+        fixed=jnp.asarray(_fixed_pixels(np.random.default_rng(seed), cand, T, H, W, n, uniform_fraction)),
+        cand_table=jnp.asarray(np.stack([np.resize(c, L) for c in cand]).astype(np.int32)),
+        cand_count=jnp.asarray([len(c) for c in cand], jnp.int32), n_uniform=int(round(uniform_fraction * n)),
+    )
+    out = []
+    w_sil = weights.get("silhouette", 0.0)
+    if masks is not None and w_sil > 0:
+        per_frame = math.sqrt(w_sil / T) if normalise == "term" else 1.0
+        term = Silhouette(scale=jnp.full(T, per_frame / math.sqrt(V * n), dtype), **shared)
+        out.append((term, Layout("silhouette", w_sil, T * V * n, np.repeat(np.arange(T), V * n), times,
+                                 ["silhouette"] * T, _frame_labels(times), {"pixels": n, "views": V})))
+    w_rgb = weights.get("rgb", 0.0)
+    if images is not None and w_rgb > 0:
+        if normalise != "term":
+            raise JaxmpmError("the masked-RGB term is normalised over the whole term only")
+        if isinstance(colors, str) and colors == "auto":
+            colors = particle_colors(model, obs, cams)
+        term = MaskedRGB(images=jnp.asarray(np.swapaxes(images, 0, 1).reshape(T, V, H * W, 3)),
+                         colors=None if colors is None else jnp.asarray(colors, dtype), weight=w_rgb, **shared)
+        out.append((term, Layout("rgb", w_rgb, T * V * n * 3, np.repeat(np.arange(T), V * n * 3), times,
+                                 ["rgb"] * T, _frame_labels(times), {"pixels": n, "views": V})))
+    return out
+
+
 # =========================================================================== the objective
 
 
@@ -556,20 +764,23 @@ class Objective:
     Built by :func:`build_objective`. ``residuals(params, key=None)`` is the weighted
     residual vector (NaN everywhere when the simulation is unhealthy: NaN values or a CFL
     number above ``cfl_limit``); ``loss(params, key=None) = sum(residuals**2)``.
+    ``residuals_of(trajectory)`` evaluates a rollout made elsewhere (e.g. inside
+    :func:`jaxmpm.sweep`).
 
     Attributes:
         model: the model (its substeps are those of the fit's current dt).
         frames: output frames simulated (covering the window).
         terms: the terms' names and weights.
+        layouts: per term its :class:`Layout`.
         count: informative residual entries (for the Gauss–Newton covariance).
         until: last observed time included (seconds), or None for all.
     """
 
-    def __init__(self, model, terms, frames, observe, checkpoint, cfl_limit, until, times):
+    def __init__(self, model, terms, frames, checkpoint, cfl_limit, until, times):
         self.model = model
-        self._terms = terms
+        self._terms = [t for t, _ in terms]
+        self.layouts = [layout for _, layout in terms]
         self.frames = frames
-        self._observe = observe
         self.checkpoint = checkpoint
         self.cfl_limit = cfl_limit
         self.until = until
@@ -577,14 +788,14 @@ class Objective:
 
     @property
     def terms(self) -> dict[str, float]:
-        return {t.name: t.weight for t in self._terms}
+        return {layout.name: layout.weight for layout in self.layouts}
 
     @property
     def count(self) -> int:
-        return sum(t.count for t in self._terms)
+        return sum(layout.count for layout in self.layouts)
 
     def simulate(self, params: Params) -> Trajectory:
-        return simulate(self.model, params, checkpoint=self.checkpoint, observe=self._observe, frames=self.frames)
+        return simulate(self.model, params, checkpoint=self.checkpoint, frames=self.frames)
 
     @staticmethod
     def healthy(traj: Trajectory, cfl_limit: float):
@@ -592,12 +803,18 @@ class Objective:
 
     def residuals(self, params: Params, key=None):
         traj = self.simulate(params)
-        r = self._residuals_of(traj, key)
+        r = self.residuals_of(traj, key)
         return jnp.where(self.healthy(traj, self.cfl_limit), r, jnp.nan)
 
-    def _residuals_of(self, traj, key=None):
+    def _term_residuals(self, traj: Trajectory, key=None) -> list:
+        frames = Frames.of(traj)
+        t0 = jnp.zeros((), traj.x.dtype)
         keys = [None] * len(self._terms) if key is None else list(jax.random.split(key, len(self._terms)))
-        return jnp.concatenate([t.fn(traj, k) for t, k in zip(self._terms, keys)])
+        return [t.residuals(frames, t0, k) for t, k in zip(self._terms, keys)]
+
+    def residuals_of(self, traj: Trajectory, key=None):
+        """The residual vector of a rollout (no health check)."""
+        return jnp.concatenate(self._term_residuals(traj, key))
 
     def loss(self, params: Params, key=None):
         r = self.residuals(params, key)
@@ -606,7 +823,7 @@ class Objective:
     def term_losses(self, params: Params) -> dict[str, float]:
         """Each term's share of the loss (a diagnostic; runs one simulation)."""
         traj = jax.jit(self.simulate)(params)
-        return {t.name: float(jnp.sum(t.fn(traj, None) ** 2)) for t in self._terms}
+        return {layout.name: float(jnp.sum(r**2)) for layout, r in zip(self.layouts, self._term_residuals(traj))}
 
     def health(self, params: Params) -> tuple[bool, str]:
         """Whether the rollout at ``params`` is healthy, and a message naming the first bad frame."""
@@ -708,18 +925,14 @@ def build_objective(
             f"too few observed frames to fit: need samples at two or more distinct times after t = 0, got {len(t_all)}"
         )
     frames = frames_needed(model, t_all)
-    terms: list[_Term] = []
+    dtype = model.bodies[0].x0.dtype
+    terms: list[tuple[Term, Layout]] = []
     if w["tracks"] > 0:
-        terms.append(_track_term(model, observation, sel, frames, w["tracks"]))
+        terms.append(track_term(model, observation, sel, dtype, weight=w["tracks"]))
     if w["silhouette"] > 0 or w["rgb"] > 0:
-        terms += _image_terms(model, observation, sel, frames, w, renderer, num_pixels, uniform_fraction,
-                              pixel_margin, pixel_seed, colors)
-    observe = None
+        terms += image_terms(model, observation, sel, dtype, weights=w, renderer=make_fit_renderer(renderer, model),
+                             num_pixels=num_pixels, uniform_fraction=uniform_fraction, margin=pixel_margin,
+                             seed=pixel_seed, colors=colors, lift=lifted_layers(model) if model.dim == 2 else None)
     if w["probes"] > 0:
-        term, fns = _probe_term(model, observation, until, frames, w["probes"], probes)
-        terms.append(term)
-
-        def observe(state, fns=fns):
-            return {n: f(state, model) for n, f in fns.items()}
-
-    return Objective(model, terms, frames, observe, checkpoint, cfl_limit, until, times[sel])
+        terms.append(probe_term(model, observation, until, dtype, extra=probes, weight=w["probes"]))
+    return Objective(model, terms, frames, checkpoint, cfl_limit, until, times[sel])
