@@ -130,6 +130,8 @@ def cmd_fit(args) -> int:
     payload = result.to_json()
     _write_json(Path(args.out), payload)
     print(_format_table(result))
+    if args.profile:
+        print(format_timing(result))
     if result.converged:
         print(result.message + f" ({result.seconds:.1f} s); wrote {args.out}")
         return 0
@@ -149,6 +151,23 @@ def _format_table(result, truth: dict | None = None) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def format_timing(result) -> str:
+    """The cost breakdown of a fit (``result.timing`` and each stage's), as a table."""
+    t = result.timing
+    lines = [f"time: {t['total_s']:.1f} s in all; planning (contact detection) {t['planning_s']:.1f} s, "
+             f"solvers {t['solver_s']:.1f} s (compilation ~{t['compile_s']:.1f} s), "
+             f"uncertainty {t['uncertainty_s']:.1f} s"]
+    rows = [("stage", "iterations", "start", "1st step", "median step", "compile~", "checks", "rejected", "std")]
+    for k, st in enumerate(result.stages, 1):
+        g = st.get("timing", {})
+        rows.append((f"{k} {st['label'][:28]}", str(st["iterations"]), f"{g.get('start_s', 0):.2f}",
+                     f"{g.get('first_step_s', 0):.2f}", f"{g.get('step_s', 0):.3f}", f"{g.get('compile_s', 0):.2f}",
+                     f"{g.get('checks_s', 0):.2f}", str(g.get("rejected_steps", "-")), f"{g.get('uncertainty_s', 0):.2f}"))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
     return "\n".join(lines)
 
 
@@ -287,6 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="last observed time (s) of the velocity stage (default: detected contact)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
+    p.add_argument("--profile", action="store_true",
+                   help="print where the time went (compilation, iterations, checks, uncertainty) per stage")
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("discover", help="show what the model gets wrong, name the cause, extend it, measure the gain")

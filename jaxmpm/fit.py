@@ -302,8 +302,14 @@ class FitResult:
         substeps: substeps per frame used (may exceed the model's after dt halving).
         initial: the initial values by name.
         method: the optimiser.
-        stages: per stage: names, window, iterations, loss, converged, message, seconds.
+        stages: per stage: names, window, iterations, loss, converged, message, seconds and
+            its ``timing`` (``start_s``: the first residuals and Jacobian, compilation
+            included; ``first_step_s``, ``step_s`` (median), ``steps_s`` (all), ``compile_s``
+            (the first step's excess over the median); ``checks_s``: the Gauss–Newton stop
+            checks; ``rejected_steps``, ``escapes``; ``uncertainty_s``).
         notes: remarks (dt halvings, skipped stages).
+        timing: where the time went (seconds): ``total_s``, ``planning_s`` (contact detection
+            for the stages), ``solver_s``, ``compile_s`` (estimated), ``uncertainty_s``.
     """
 
     params: Params
@@ -319,6 +325,7 @@ class FitResult:
     method: str = "lm"
     stages: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    timing: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The ``fit.json`` contract (DESIGN §5.3) plus status fields."""
@@ -340,6 +347,7 @@ class FitResult:
             "method": self.method,
             "stages": json.loads(json.dumps(self.stages, default=float)),
             "notes": list(self.notes),
+            "timing": json.loads(json.dumps(self.timing, default=float)),
         }
 
 
@@ -400,9 +408,12 @@ def fit(
     build_objective(model, observation, **objective_options)
 
     notes: list[str] = []
+    planning_s = 0.0
     if c.stages == "auto":
+        t_plan = time.perf_counter()
         plan, plan_notes = plan_stages(model, params, observation, names, velocity_until=c.velocity_until,
                                        warmup_frames=c.warmup_frames, refine_velocity=c.refine_velocity)
+        planning_s += time.perf_counter() - t_plan
         notes += plan_notes
     elif c.stages is None or c.stages == "single":
         plan = [Stage(list(names), None, "all frames")]
@@ -493,17 +504,22 @@ def fit(
             "seconds": time.perf_counter() - t_stage,
             "substeps": model.substeps,
             "terms": objective.terms,
+            "timing": dict(outcome.timing),
         }
         records.append(record)
         say(f"stage {si + 1}: {outcome.message}")
         final_names = [n for n in snames if last_stage_of[n] == si]
         if c.uncertainty and final_names:
-            stage_std = _stage_std(objective, params_of, {n: y_all[n] for n in snames})
+            t_std = time.perf_counter()
+            stage_std = _stage_std(objective, params_of, {n: y_all[n] for n in snames}, outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
+            record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
         if replans_left and stage.until is not None and set(snames) == set(vel_names):
             replans_left -= 1
             now = apply_unconstrained(model, params, list(y_all), y_all)
+            t_plan = time.perf_counter()
             t_new = contact_time(model, now, observation)
+            planning_s += time.perf_counter() - t_plan
             t_c = t_new if t_new is not None else t_guess
             rest, _ = plan_stages(model, now, observation, names, velocity_until=t_c,
                                   warmup_frames=c.warmup_frames, refine_velocity=c.refine_velocity)
@@ -532,6 +548,14 @@ def fit(
     else:
         failed = "; ".join(f"stage {records.index(r) + 1} ({r['label']}): {r['message']}" for r in deciding if not r["converged"])
         message = f"did not converge — {failed}; returning the best parameters so far"
+    stage_timing = [r["timing"] for r in records]
+    timing = {
+        "total_s": time.perf_counter() - start,
+        "planning_s": planning_s,
+        "solver_s": sum(t.get("start_s", 0.0) + t.get("steps_s", 0.0) + t.get("checks_s", 0.0) for t in stage_timing),
+        "compile_s": sum(t.get("compile_s", 0.0) for t in stage_timing),
+        "uncertainty_s": sum(t.get("uncertainty_s", 0.0) for t in stage_timing),
+    }
     return FitResult(
         params=final_params,
         values=values,
@@ -546,6 +570,7 @@ def fit(
         method=c.method,
         stages=records,
         notes=notes,
+        timing=timing,
     )
 
 
@@ -572,11 +597,15 @@ def _solve(method: str, objective: Objective, params_of, y0: dict, c: FitConfig,
                 patience=c.patience, grad=c.grad, seed=seed, progress=progress, offset=offset, names=list(y0))
 
 
-def _stage_std(objective: Objective, params_of, y: dict) -> dict[str, np.ndarray]:
-    """Gauss–Newton standard deviations (physical units) of the variables ``y`` of one stage."""
+def _stage_std(objective: Objective, params_of, y: dict, jacobian=None) -> dict[str, np.ndarray]:
+    """Gauss–Newton standard deviations (physical units) of the variables ``y`` of one stage;
+    ``jacobian``: the solver's ``(rj, (r, J) at y or None)`` when it has them (no recompilation)."""
     dtype = jnp.result_type(float)
-    rj, flat, unravel = residuals_and_jacobian(lambda v: objective.residuals(params_of(v)).astype(dtype), y)
-    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    rj, at_y = jacobian if jacobian is not None else (None, None)
+    flat, unravel = jax.flatten_util.ravel_pytree(y)
+    if rj is None:
+        rj = residuals_and_jacobian(lambda v: objective.residuals(params_of(v)).astype(dtype), y)[0]
+    r, J = at_y if at_y is not None else (np.asarray(a, np.float64) for a in rj(flat))
     cov = gauss_newton_covariance(J, r, count=objective.count)
     std_y = unravel(jnp.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), flat.dtype))
     return physical_std(list(y), y, std_y)

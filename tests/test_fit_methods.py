@@ -104,6 +104,27 @@ def test_a_fit_that_does_not_converge_says_so(obs, tmp_path, capsys):
     assert "did not converge" in captured.err and "NOT CONVERGED" in captured.out
 
 
+def test_every_fit_reports_where_its_time_went(obs, tmp_path, capsys):
+    """fit.json's timing block adds up (the parts lie within the total; the compilation
+    estimate within the first step) and `jaxmpm fit --profile` prints it per stage."""
+    scene_file = tmp_path / "start.json"
+    scene_file.write_text(json.dumps(_spec(mu=20.0)))
+    obs_file = save_observation(tmp_path / "obs.npz", obs)
+    out = tmp_path / "fit.json"
+    main(["fit", str(scene_file), str(obs_file), "--params", "mu", "--stages", "single", "--max-steps", "4",
+          "--out", str(out), "--quiet", "--profile"])
+    payload = json.loads(out.read_text())
+    t = payload["timing"]
+    assert t["total_s"] <= payload["seconds"] + 1e-6
+    parts = t["planning_s"] + t["solver_s"] + t["uncertainty_s"]
+    assert 0.0 < parts <= t["total_s"] + 1e-6
+    (stage,) = payload["stages"]
+    g = stage["timing"]
+    assert 0.0 <= g["compile_s"] <= g["first_step_s"] <= g["steps_s"] <= stage["seconds"]
+    assert g["rejected_steps"] <= stage["iterations"] and g["uncertainty_s"] > 0.0
+    assert "time:" in capsys.readouterr().out
+
+
 def test_truth_lies_within_a_few_sigma_with_noisy_tracks():
     """Gauss–Newton standard deviations are calibrated: with 3 mm noise on the tracks the
     truth lies within 4 sigma of the estimate (for mu and the velocity)."""

@@ -15,7 +15,8 @@ Each returns a :class:`SolverOutcome`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import equinox as eqx
@@ -61,7 +62,8 @@ class SolverOutcome:
     message: str
     unhealthy_trial: bool = False
     unhealthy_start: bool = False
-    jacobian: Any = None  # (r, J) at y when the solver has them (LM), for the covariance
+    jacobian: Any = None  # (rj, (r, J) at y or None) when the solver has them (LM), for the covariance
+    timing: dict = field(default_factory=dict)  # seconds: where the solver's time went (see the solvers)
 
 
 def residuals_and_jacobian(residuals: Callable, y0: dict):
@@ -135,7 +137,7 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
     return promised <= noise
 
 
-def gauss_newton_escape(loss_of, rj, flat, f, rtol):
+def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None):
     """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
 
     A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
@@ -147,8 +149,10 @@ def gauss_newton_escape(loss_of, rj, flat, f, rtol):
     else ``(None, verdict)``: ``"stationary"`` (the test of :func:`gauss_newton_step`),
     ``"floor"`` (no length helped and the step promises less than the loss's round-off noise,
     :func:`at_round_off_floor`) or ``"rough"`` (stuck away from a stationary point).
+    ``r, J`` at ``flat`` are evaluated unless given.
     """
-    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    if r is None or J is None:
+        r, J = (np.asarray(a, np.float64) for a in rj(flat))
     delta, stationary = _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
     if delta is None:
         return None, "rough"
@@ -188,10 +192,44 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     }[how]
 
 
-def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
-    """Levenberg–Marquardt (``optimistix``) on ``residuals(y) -> (M,)`` with forward-mode Jacobians.
+#: optimistix's ClassicalTrustRegion: a step is accepted when the loss falls by at least
+#: ``TRUST_LOW`` of the decrease the linear model predicts, and the step size (the inverse of
+#: the damping) grows by ``TRUST_GROW`` when it falls by ``TRUST_HIGH`` of it, or shrinks by
+#: ``TRUST_SHRINK`` on a rejection; the step size starts at 1.
+TRUST_LOW, TRUST_HIGH, TRUST_GROW, TRUST_SHRINK = 0.01, 0.99, 3.5, 0.25
 
-    Converged when optimistix's Cauchy test passes (a small step and a small loss change,
+
+def _damped_step(r: np.ndarray, J: np.ndarray, step_size: float, eps: float) -> np.ndarray:
+    """The damped Gauss–Newton step ``argmin |J d + r|^2 + |d|^2 / step_size`` (a least-squares
+    solve of ``[J; I/sqrt(step_size)] d = [-r; 0]``), NaN where ``r`` or ``J`` is not finite."""
+    p = J.shape[1]
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+        return np.full(p, np.nan)
+    damping = 1.0 / step_size if step_size > eps else np.finfo(np.float64).max ** 0.5
+    A = np.vstack([J, math.sqrt(damping) * np.eye(p)])
+    return np.linalg.lstsq(A, np.concatenate([-r, np.zeros(p)]), rcond=None)[0]
+
+
+def _cauchy_converged(rtol: float, atol: float, y, dy, r, dr) -> bool:
+    """optimistix's Cauchy test: the last accepted step is small in the parameters *and* the
+    residuals (max norm of the change relative to ``atol + rtol |value|``)."""
+    return bool(np.max(np.abs(dy) / (atol + rtol * np.abs(y))) < 1 and np.max(np.abs(dr) / (atol + rtol * np.abs(r))) < 1)
+
+
+def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
+    """Levenberg–Marquardt on ``residuals(y) -> (M,)`` with forward-mode Jacobians.
+
+    The algorithm is optimistix's ``LevenbergMarquardt`` (a damped Gauss–Newton descent in a
+    classical trust region, :data:`TRUST_LOW` ...; Cauchy termination), run on the host over
+    one compiled function that returns the residuals and their Jacobian together
+    (:func:`residuals_and_jacobian`: one primal rollout shared by the JVPs of all parameters).
+    Every trial point costs one such call; the small damped least-squares solve is NumPy's.
+    (optimistix's own loop linearises the rollout and materialises the Jacobian operator
+    separately, and compiles a second program: measured 1.6–3× slower per iteration and
+    ~20 s more compilation per stage on the demo; see docs/fitting.md.) Residuals are scaled
+    to a unit starting loss so that the first damping (1) is comparable with ``JᵀJ``.
+
+    Converged when the Cauchy test passes (a small step and a small change of the residuals,
     ``rtol``/``atol``) *and* the undamped Gauss–Newton step there is within
     ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees, m/s); or, after
     ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
@@ -200,91 +238,106 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance. ``progress(offset + iteration, loss)`` is called every iteration.
     """
-    r0 = jax.jit(residuals)(y0)
-    if not bool(jnp.all(jnp.isfinite(r0))):
-        return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True)
-    f0 = float(jnp.sum(r0**2))
-    # optimistix's trust region starts at damping 1 on the loss: residuals scaled to a unit
-    # starting loss make that comparable to J^T J, instead of first steps ~f0 times too short
-    # that take several iterations to grow (losses are reported unscaled)
+    clock = time.perf_counter()
+    rj, flat0, unravel = residuals_and_jacobian(residuals, y0)
+    dtype = flat0.dtype
+    eps = float(jnp.finfo(dtype).eps)
+
+    def evaluate(y):
+        return tuple(np.asarray(a, np.float64) for a in rj(jnp.asarray(y, dtype)))
+
+    r_start, J_start = evaluate(flat0)
+    timing = {"start_s": time.perf_counter() - clock}
+    if not np.all(np.isfinite(r_start)):
+        return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True, timing=timing)
+    f0 = float(r_start @ r_start)
     scale = 1.0 / math.sqrt(f0) if 0.0 < f0 < math.inf else 1.0
+    loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if an escape needs it
 
-    def fn(y, args):  # optimistix's solver interface: (residuals, aux)
-        return residuals(y) * scale, None
-
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    options = {"jac": "fwd"}
-    tags = frozenset()
-    f_struct = jax.eval_shape(lambda: r0)
-    state = solver.init(fn, y0, None, options, f_struct, None, tags)
-
-    @eqx.filter_jit
-    def advance(y, state):
-        y, state, _ = solver.step(fn, y, None, options, state, tags)
-        done, result = solver.terminate(fn, y, None, options, state, tags)
-        loss = jnp.sum(state.f_info.residual**2) / scale**2
-        return y, state, done, result, loss
-
-    y = y0
+    y = np.asarray(flat0, np.float64)  # the last accepted point ...
+    r = J = None  # ... its scaled residuals and Jacobian (None before the first evaluation)
+    y_eval, evaluated = y, (r_start * scale, J_start * scale)  # the trial point (and its evaluation, when known)
+    step_size, first, since_accept = 1.0, True, 0
     losses = [f0]
-    converged, stalled, verdict, iterations = False, False, "rough", 0
-    escape_tools, escapes, fresh = None, 0, True
-    succeeded = False
+    converged, stalled, succeeded, verdict, iterations = False, False, False, "rough", 0
+    escapes, rejected = 0, 0
+    at_y = None  # (r, J) unscaled at the final y when the stop checks evaluated them
+    steps_s, checks_s = [], 0.0
     for iterations in range(1, max_steps + 1):
-        y, state, done, result, loss = advance(y, state)
-        # a fresh state's first step only evaluates its starting point; later accepted steps
-        # move to a lower loss
-        accepted = not fresh and int(state.num_steps_since_acceptance) == 0
-        fresh = False
-        if accepted:
-            losses.append(float(loss))
+        t_step = time.perf_counter()
+        r_e, J_e = evaluated if evaluated is not None else (a * scale for a in evaluate(y_eval))
+        evaluated = None
+        f_e = float(r_e @ r_e)
+        if first:
+            accept, good = True, False
+        else:
+            predicted = 0.5 * (float(np.sum((J @ (y_eval - y) + r) ** 2)) - float(r @ r))
+            change = 0.5 * (f_e - float(r @ r))
+            accept = bool(change <= TRUST_LOW * predicted)  # False for a NaN loss
+            good = bool(change < TRUST_HIGH * predicted and predicted < 0)
+        step_size *= (TRUST_GROW if good else 1.0) if accept else TRUST_SHRINK
+        if accept:
+            r_prev = np.zeros_like(r_e) if r is None else r
+            succeeded = _cauchy_converged(rtol, atol, y_eval, y_eval - y, r_e, r_e - r_prev)
+            if not first:
+                losses.append(f_e / scale**2)
+            y, r, J, since_accept = y_eval, r_e, J_e, 0
+        else:
+            succeeded, since_accept, rejected = False, since_accept + 1, rejected + 1
+        first = False
+        y_eval = y + _damped_step(r, J, step_size, eps)
+        steps_s.append(time.perf_counter() - t_step)
         if progress is not None:
             progress(offset + iterations, losses[-1])
-        succeeded = bool(done) and result == optx.RESULTS.successful
-        if bool(done) and not succeeded:
-            converged = False
-            break
-        # optimistix's Cauchy test (small step AND small loss change) also passes when its
-        # trust region has collapsed on a rough loss far from a minimum; and at the loss's
-        # numerical floor the region shrinks without the test ever passing. Both end here:
-        # a stationary point only if the undamped Gauss-Newton step is within tolerance or
-        # promises less than the loss's round-off noise (gauss_newton_escape's verdicts).
-        if succeeded or int(state.num_steps_since_acceptance) >= MAX_REJECTED_STEPS:
-            if escape_tools is None:
-                rj, _, unravel = residuals_and_jacobian(residuals, y)
-                loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))
-                escape_tools = (rj, unravel, loss_of)
-            rj, unravel, loss_of = escape_tools
-            flat = jax.flatten_util.ravel_pytree(y)[0]
-            found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol)
+        # The Cauchy test also passes when the trust region has collapsed on a rough loss far
+        # from a minimum; and at the loss's numerical floor the region shrinks without the test
+        # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
+        # is within tolerance or promises less than the loss's round-off noise.
+        if succeeded or since_accept >= MAX_REJECTED_STEPS:
+            t_check = time.perf_counter()
+            flat = jnp.asarray(y, dtype)
+            at_y = (r / scale, J / scale)
+            found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol, *at_y)
+            checks_s += time.perf_counter() - t_check
             if found is not None and escapes < MAX_ESCAPES:
                 escapes += 1
-                y = unravel(found[0])
+                y_eval, r, J, at_y = np.asarray(found[0], np.float64), None, None, None
                 losses.append(found[1])
-                state = solver.init(fn, y, None, options, f_struct, None, tags)
-                fresh = True
+                step_size, first = 1.0, True  # a fresh trust region at the better point
                 continue
             stalled = not succeeded
             converged = verdict in STATIONARY
             break
-    # optimistix returns the last *accepted* point as y (trial points live in the state).
+    if r is None:  # the iteration limit came right after an escape: its point is the result
+        y, (r, J) = y_eval, (a * scale for a in evaluate(y_eval))
     unhealthy = False
-    if stalled:
-        trial = jax.jit(residuals)(state.y_eval)
-        unhealthy = not bool(jnp.all(jnp.isfinite(trial)))
+    if stalled:  # the next trial point: is the simulation unstable there?
+        unhealthy = not np.all(np.isfinite(evaluate(y_eval)[0]))
         if unhealthy:
             converged = False
-    if stalled:
         how = "unstable" if unhealthy else verdict
-    elif succeeded:  # optimistix's tolerance test passed: checked against the Gauss-Newton step above
+    elif succeeded:  # the Cauchy test passed: checked against the Gauss-Newton step above
         how = {"stationary": "converged", "floor": "floor"}.get(verdict, "rough")
-    elif iterations >= max_steps:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
-        rj = residuals_and_jacobian(residuals, y)[0] if escape_tools is None else escape_tools[0]
-        converged = gauss_newton_step(rj, jax.flatten_util.ravel_pytree(y)[0], rtol)[1]
+    else:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
+        t_check = time.perf_counter()
+        at_y = (r / scale, J / scale)
+        converged = _gauss_newton_from(*at_y, y, rtol)[1]
+        checks_s += time.perf_counter() - t_check
         how = "cap-stationary" if converged else "cap"
-    else:  # optimistix stopped with a failure result before the limit
-        how = "cap"
-    return SolverOutcome(y, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy)
+    timing.update(_step_timing(steps_s), checks_s=checks_s, rejected_steps=rejected, escapes=escapes)
+    y_out = unravel(jnp.asarray(y, dtype))
+    return SolverOutcome(y_out, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy,
+                         jacobian=(rj, at_y), timing=timing)
+
+
+def _step_timing(steps_s: list[float]) -> dict:
+    """Seconds of a solver's iterations: the first (compilation included), the median of the
+    others, their sum, and the compilation estimated as the first's excess over the median."""
+    if not steps_s:
+        return {"first_step_s": 0.0, "step_s": 0.0, "steps_s": 0.0, "compile_s": 0.0}
+    median = float(np.median(steps_s[1:])) if len(steps_s) > 1 else 0.0
+    return {"first_step_s": steps_s[0], "step_s": median, "steps_s": float(np.sum(steps_s)),
+            "compile_s": max(steps_s[0] - median, 0.0)}
 
 
 def bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
@@ -315,9 +368,12 @@ def bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutco
     losses = [float(f0) * scale]
     converged, iterations = False, 0
     best = (losses[0], y0)
+    steps_s = []
     for iterations in range(1, max_steps + 1):
+        t_step = time.perf_counter()
         y, state, done, result = advance(y, state)
-        f = float(state.f_info.f) * scale
+        f = float(state.f_info.f) * scale  # waits for the step
+        steps_s.append(time.perf_counter() - t_step)
         if iterations > 1 and np.isfinite(f) and f < losses[-1]:
             losses.append(f)
             best = (f, y)
@@ -331,7 +387,7 @@ def bfgs(loss_fn, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutco
     if bool(done) and not converged:  # the solver gave up (e.g. its line search failed)
         unhealthy = not bool(jnp.isfinite(jax.jit(loss_fn)(state.y_eval)))
     message = f"converged in {iterations} iterations" if converged else f"did not converge within {max_steps} iterations"
-    return SolverOutcome(y, losses, iterations, converged, message, unhealthy)
+    return SolverOutcome(y, losses, iterations, converged, message, unhealthy, timing=_step_timing(steps_s))
 
 
 def _learning_rates(names, y0, learning_rates) -> dict:
@@ -377,10 +433,13 @@ def adam(
     losses, history = [], []
     best = (math.inf, y0)
     converged, unhealthy, iterations = False, False, 0
+    steps_s = []
     for iterations in range(1, max_steps + 1):
         factor = jnp.asarray(decay ** ((iterations - 1) / max(max_steps - 1, 1)), jnp.result_type(float))
+        t_step = time.perf_counter()
         new, new_state, value, ok = advance(y, opt_state, jax.random.fold_in(base, iterations), factor)
-        value = float(value)
+        value = float(value)  # waits for the step
+        steps_s.append(time.perf_counter() - t_step)
         if not bool(ok):
             unhealthy = True
             iterations -= 1
@@ -404,7 +463,7 @@ def adam(
         message = f"stopped after {iterations} iterations: the loss or its gradient became non-finite"
     else:
         message = f"did not converge within {max_steps} iterations (Adam; the lowest-loss iterate is returned)"
-    return SolverOutcome(y_out, losses, iterations, converged, message, unhealthy)
+    return SolverOutcome(y_out, losses, iterations, converged, message, unhealthy, timing=_step_timing(steps_s))
 
 
 
