@@ -900,9 +900,16 @@ def discover(
         for c in cands:
             say(f"  {c.id:18s} score {c.score:7.4f}  p {c.score_p:.3g}")
         best_cand, best_fit = None, None
+        # the rule needs a held-out improvement above the numerical error: when the current
+        # held-out error is itself within it, no refit can pass, so none is run
+        hopeless = convergence and current_err <= numerical
         for c in cands[:top]:
             if c.score <= 1e-9:
                 c.reason = "no predicted improvement"
+                continue
+            if hopeless:
+                c.reason = (f"not refitted: the held-out error {current_err:.3g} is within the numerical error "
+                            f"{numerical:.3g}, so no improvement can exceed it")
                 continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)

@@ -161,6 +161,25 @@ def test_no_hidden_effect_reports_no_discrepancy_through_the_cli(tmp_path):
     assert "No significant discrepancy" in (out / "report.md").read_text()
 
 
+def test_no_refit_is_run_when_no_improvement_could_exceed_the_numerical_error():
+    """Noise-free data with a gravity error of 0.01 m/s^2: the screen ranks gravity first, but
+    the fitted base model's held-out error (~1e-4 m) is far below the dt vs dt/2 difference
+    (~2e-3 m), so the rule (improvement > numerical error) can pass for no extension and none
+    is refitted (the verdict is the one the refits would have reached)."""
+    scene = load_scene(_spec(THROW))
+    m, p = scene.model, scene.params
+    ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
+    x = np.asarray(_rollout(m, X.enable(m, p, ids, {"gravity": {"delta": [0.0, -0.01]}}), FRAMES)[0].x, float)
+    obs = Observation(times=np.arange(FRAMES) * m.frame_dt, positions=x, point_ids="particles")
+    result = discover(m, p, obs, top=2, max_extensions=1)
+    assert not result.discrepancy
+    assert result.base_error < result.convergence["numerical_error"]
+    assert not any(c.refit for c in result.candidates)
+    assert result.candidates[0].id == "gravity" and result.candidates[0].score > 0.9
+    screened = [c for c in result.candidates if c.score > 1e-9 and "rank" not in c.reason]
+    assert screened and all("numerical error" in c.reason for c in screened), [c.reason for c in result.candidates]
+
+
 def test_discover_rejects_bad_inputs():
     from jaxmpm.errors import JaxmpmError
 

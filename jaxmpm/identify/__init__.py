@@ -7,7 +7,8 @@ discrepancy) are built on these parts:
   read from each parameter's declaration (:class:`jaxmpm.parameters.Parameter`);
 * :mod:`~jaxmpm.identify.residuals`: residual vectors of tracks, silhouettes, masked RGB and
   probes (:func:`build_objective`) and the probe registry;
-* :mod:`~jaxmpm.identify.solvers`: Levenberg–Marquardt (optimistix), its bounded variant,
+* :mod:`~jaxmpm.identify.solvers`: Levenberg–Marquardt (optimistix's algorithm on a fused
+  residual-and-Jacobian function), its bounded variant,
   BFGS and Adam;
 * :mod:`~jaxmpm.identify.uncertainty`: the Gauss–Newton covariance.
 """
