@@ -35,6 +35,7 @@ from .fit import fit as fit
 from .fit import fit_scene as fit_scene
 from .losses import build_objective as build_objective
 from .model import Body as Body
+from .model import Collision as Collision
 from .model import Model as Model
 from .model import initial_state as initial_state
 from .observe import Observation as Observation

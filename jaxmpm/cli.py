@@ -30,15 +30,6 @@ def _check_output(out: str) -> None:
         raise JaxmpmError(f"--out {out}: cannot write to {path.parent}")
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    from .observe import atomic_write
-
-    def write(tmp):
-        Path(tmp).write_text(json.dumps(payload, indent=2) + "\n")
-
-    atomic_write(path, write)
-
-
 # --------------------------------------------------------------------------- simulate
 
 
@@ -105,6 +96,7 @@ def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None
 
 def cmd_fit(args) -> int:
     from .fit import default_names, fit_scene, parse_weights
+    from .fit_report import format_table, write_json
     from .observe import load_observation
     from .scene import load_scene
 
@@ -127,8 +119,8 @@ def cmd_fit(args) -> int:
         num_pixels=args.pixels, velocity_until=args.velocity_until,
     )
     payload = result.to_json()
-    _write_json(Path(args.out), payload)
-    print(_format_table(result))
+    write_json(Path(args.out), payload)
+    print(format_table(result))
     if result.converged:
         print(result.message + f" ({result.seconds:.1f} s); wrote {args.out}")
         return 0
@@ -136,46 +128,6 @@ def cmd_fit(args) -> int:
           "with \"converged\": false", file=sys.stderr)
     print(f"NOT CONVERGED: {result.message}; wrote {args.out}")
     return 1
-
-
-def _default_names(scene) -> list[str]:
-    """The material parameters that PAC-NeRF fits for the first body's model."""
-    from .constitutive import MATERIALS
-
-    if len(scene.model.bodies) != 1:
-        raise JaxmpmError("this scene has several bodies: name the parameters with --params")
-    return list(MATERIALS[type(scene.model.bodies[0].material).name].required)
-
-
-def _format_table(result, truth: dict | None = None) -> str:
-    rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
-    for name, value in result.values.items():
-        row = (name, _fmt(result.initial.get(name)), _fmt(value), _fmt(result.std.get(name)))
-        if truth:
-            row += (_fmt(truth[name]), _error_text(name, value, truth[name]))
-        rows.append(row)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    v = np.asarray(v, float)
-    if v.ndim:
-        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
-    return f"{float(v):.4g}"
-
-
-def _error_text(name, value, truth) -> str:
-    from .fit import LOG10_PARAMS, _leaf
-
-    value, truth = np.asarray(value, float), np.asarray(truth, float)
-    if _leaf(name) in LOG10_PARAMS:
-        return f"|dlog10| = {float(np.max(np.abs(np.log10(value) - np.log10(truth)))):.4f}"
-    return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
 
 
 # --------------------------------------------------------------------------- discover

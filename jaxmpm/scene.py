@@ -11,15 +11,14 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
 
-from .colliders import COLLIDER_TYPES, CONTACTS, asset_path
+from .colliders import COLLIDER_TYPES, CONTACTS, load_mesh, place, resolve_path, vector
 from .constitutive import MATERIALS
 from .errors import SceneError
-from .model import COLLISION_MODES, Body, Model, Params
+from .model import COLLISION_MODES, Body, Collision, Model, Params
 from .state import Grid
 
 if sys.version_info >= (3, 11):
@@ -50,16 +49,6 @@ def _check_keys(spec: dict, required, optional, where: str) -> None:
             raise SceneError(f"{where}: missing required key {key!r}")
 
 
-def _vector(value, dim: int, where: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{where} must be a list of {dim} numbers, got {value!r}") from None
-    if arr.shape != (dim,) or not np.all(np.isfinite(arr)):
-        raise SceneError(f"{where} must be a list of {dim} finite numbers, got {value!r}")
-    return arr
-
-
 def _number(value, where: str, positive: bool = False, integer: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneError(f"{where} must be a number, got {value!r}")
@@ -77,13 +66,6 @@ def _choice(value, choices, where: str):
     if not isinstance(value, str) or value not in choices:
         raise SceneError(f"{where} must be one of {tuple(choices)}, got {value!r}")
     return value
-
-
-def _file(spec: dict, base_dir: Path, where: str) -> Path:
-    value = spec["path"]
-    if not isinstance(value, str) or not value:
-        raise SceneError(f"{where}.path must be a file name (string), got {value!r}")
-    return base_dir / Path(value).expanduser()
 
 
 #: Most lattice points one body may sample (beyond this the positions alone take gigabytes).
@@ -133,15 +115,6 @@ def _lattice(lo: np.ndarray, hi: np.ndarray, h: float, where: str = "body") -> n
     axes = _lattice_axes(lo, hi, h, where)
     mesh = np.meshgrid(*axes, indexing="ij")
     return np.stack([m.reshape(-1) for m in mesh], axis=-1)
-
-
-def _rotation_matrix(degrees) -> np.ndarray:
-    rx, ry, rz = np.deg2rad(np.asarray(degrees, float))
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
 
 
 def _inside_mesh(vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray]) -> np.ndarray:
@@ -199,62 +172,34 @@ def _inside_mesh(vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray]
     return inside.reshape(-1)
 
 
-def load_mesh(path: Path, where: str):
-    """Load a triangle mesh with trimesh, with a clear error on failure."""
-    import trimesh
-
-    if not path.is_file():
-        raise SceneError(f"{where}: mesh file not found: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as err:  # trimesh raises many types
-        raise SceneError(f"{where}: cannot read mesh {path}: {err}") from None
-    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise SceneError(f"{where}: mesh {path} has no faces")
-    return mesh
-
-
 def _sample_body(spec: dict, dim: int, dx: float, base_dir: Path, where: str) -> tuple[np.ndarray, float]:
     shape = spec["shape"]
     ppc = int(_number(spec.get("ppc", 2**dim), f"{where}.ppc", positive=True, integer=True))
     h = _lattice_spacing(dx, ppc, dim, where)
     if shape == "box":
-        lo, hi = _vector(spec["lo"], dim, f"{where}.lo"), _vector(spec["hi"], dim, f"{where}.hi")
+        lo, hi = vector(spec["lo"], dim, f"{where}.lo"), vector(spec["hi"], dim, f"{where}.hi")
         if np.any(hi <= lo):
             raise SceneError(f"{where}: box 'hi' must exceed 'lo' on every axis, got lo={lo.tolist()} hi={hi.tolist()}")
         x = _lattice(lo, hi, h, where)
     elif shape == "sphere":
-        center = _vector(spec["center"], dim, f"{where}.center")
+        center = vector(spec["center"], dim, f"{where}.center")
         radius = _number(spec["radius"], f"{where}.radius", positive=True)
         x = _lattice(center - radius, center + radius, h, where)
         x = x[np.sum((x - center) ** 2, axis=-1) <= radius**2]
     elif shape == "mesh":
         if dim != 3:
             raise SceneError(f"{where}: shape 'mesh' needs dim = 3")
-        path = _file(spec, base_dir, where)
-        if not path.is_file() and not Path(spec["path"]).is_absolute():
-            try:  # a shipped mesh, as for mesh colliders ("bunny.obj")
-                path = Path(asset_path(spec["path"]))
-            except FileNotFoundError:
-                pass
-        mesh = load_mesh(path, where)
-        mesh = mesh.copy()
-        mesh.apply_scale(_number(spec.get("scale", 1.0), f"{where}.scale", positive=True))
-        if "rotate" in spec:
-            rot = np.eye(4)
-            rot[:3, :3] = _rotation_matrix(_vector(spec["rotate"], 3, f"{where}.rotate"))
-            mesh.apply_transform(rot)
-        if "translate" in spec:
-            mesh.apply_translation(_vector(spec["translate"], 3, f"{where}.translate"))
+        import trimesh
+
+        v, f = load_mesh(resolve_path(spec["path"], base_dir, where), where)
+        mesh = trimesh.Trimesh(place(v, spec, where), f, process=False)
         if not mesh.is_watertight:
             raise SceneError(f"{where}: mesh {spec['path']} is not watertight, so its inside is undefined")
         axes = _lattice_axes(mesh.bounds[0], mesh.bounds[1], h, where)
         x = np.stack([m.reshape(-1) for m in np.meshgrid(*axes, indexing="ij")], axis=-1)
         x = x[_inside_mesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), axes)]
     elif shape == "points":
-        path = _file(spec, base_dir, where)
-        if not path.is_file():
-            raise SceneError(f"{where}: points file not found: {path}")
+        path = resolve_path(spec["path"], base_dir, where, assets=False)
         try:
             x = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as err:
@@ -331,8 +276,8 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     dim = int(dim)
     dx = _number(spec["dx"], "scene: 'dx'", positive=True)
     _check_keys(spec["domain"], ("lo", "hi"), (), "scene.domain")
-    lo = _vector(spec["domain"]["lo"], dim, "scene: 'domain.lo'")
-    hi = _vector(spec["domain"]["hi"], dim, "scene: 'domain.hi'")
+    lo = vector(spec["domain"]["lo"], dim, "scene: 'domain.lo'")
+    hi = vector(spec["domain"]["hi"], dim, "scene: 'domain.hi'")
     if np.any(hi - lo < 2 * dx):
         raise SceneError(f"scene: 'domain' must span at least 2 dx per axis, got lo={lo.tolist()} hi={hi.tolist()}")
     frames = int(_number(spec["frames"], "scene: 'frames'", positive=True, integer=True))
@@ -346,8 +291,8 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
         substeps = max(1, math.ceil(frame_dt / dt - 1e-9))
     else:
         raise SceneError("scene: missing required key 'substeps' (or 'dt')")
-    gravity = _vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
-    collision = _choice(spec.get("collision", "cpic"), COLLISION_MODES, "scene: 'collision'")
+    gravity = vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
+    collision = Collision(_choice(spec.get("collision", Collision.CPIC.value), COLLISION_MODES, "scene: 'collision'"))
     grid = Grid(lo=tuple(lo.tolist()), hi=tuple(hi.tolist()), dx=float(dx))
     if grid.num_nodes >= 2**31:  # flat node indices are int32
         raise SceneError(f"scene: 'dx' = {dx} is too small for the domain: the grid would have {grid.num_nodes:.3g} nodes")
@@ -411,7 +356,7 @@ def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
             raise SceneError(f"{where}.material: parameter {key!r} must be a number, got {val!r}")
     material_values = cls.validate(values, f"{where}.material")
     density = _number(mspec.get("density", 1000.0), f"{where}.material.density", positive=True)
-    velocity = _vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
+    velocity = vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
 
     x, vol = _sample_body(bspec, dim, dx, base_dir, where)
     if len(x) == 0:
@@ -455,8 +400,8 @@ def _build_collider(cspec, k, dim, base_dir, dtype):
     name = _name(cspec.get("name", f"{kind}{k}"), where)
     try:
         collider = ctor(cspec, name, dim, base_dir)
-    except SceneError:
-        raise
+    except SceneError as err:  # the collider names itself; add where it sits in the file
+        raise SceneError(f"{where}: {err}") from None
     except (TypeError, ValueError, IndexError, KeyError) as err:  # e.g. a number where a list belongs
         raise SceneError(f"{where} ({kind} {name!r}): invalid value: {err}") from None
     cparams = {"friction": jnp.asarray(friction, dtype), "restitution": jnp.asarray(restitution, dtype)}
