@@ -88,9 +88,10 @@ def load_mesh(path, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
     try:
         raw = trimesh.load(p, force="mesh", process=False)
     except Exception as exc:  # noqa: BLE001 - trimesh raises many types
-        # trimesh reports unreadable bytes in odd ways (e.g. a missing optional decoder
-        # module), so the message names the file and the format, and the detail follows.
-        raise SceneError(f"{where}: {p!r} is not a readable mesh file ({type(exc).__name__}: {exc})") from None
+        # Unreadable bytes reach trimesh's text decoders, which may then ask for an optional
+        # module: that ImportError says nothing about the file, so it is not repeated.
+        detail = "" if isinstance(exc, ImportError) else f" ({type(exc).__name__}: {exc})"
+        raise SceneError(f"{where}: {p!r} is not a readable mesh file{detail}") from None
     faces = getattr(raw, "faces", None)
     if faces is None or len(faces) == 0:
         raise SceneError(f"{where}: mesh {p!r} has no faces")
