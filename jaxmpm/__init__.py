@@ -37,9 +37,10 @@ from .fit import fit as fit
 from .fit import fit_scene as fit_scene
 from .identify import build_objective as build_objective
 from .model import Body as Body
-from .parameters import Parameter as Parameter
+from .model import Collision as Collision
 from .model import Model as Model
 from .model import initial_state as initial_state
+from .parameters import Parameter as Parameter
 from .observe import Observation as Observation
 from .observe import load_observation as load_observation
 from .observe import save_observation as save_observation

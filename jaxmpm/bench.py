@@ -7,9 +7,12 @@
 * ``memory``: peak RSS of the gradient through a long checkpointed rollout (default
   16 frames x 200 substeps at 25k particles).
 
-The scene is the peers' (``benchmarks/peers/common.py``): a cube of elastic material at ~8
+The scene (:mod:`jaxmpm.bench_scene`, shared with the peers): a cube of elastic material at ~8
 particles per cell in the unit box (64^3 grid by default), dt = 1e-4, gravity, slip walls.
-Each measurement runs in its own subprocess so that its peak RSS is its own.
+Each measurement runs in its own subprocess so that its peak RSS is its own. The jaxmpm rows
+work from an installed package; the Taichi/Warp columns need the peers in ``benchmarks/peers/``
+of a source checkout (found next to the package or in the working directory) and are reported
+as unavailable, in one line, elsewhere.
 """
 
 from __future__ import annotations
@@ -32,12 +35,10 @@ def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
     """The peers' cube as a jaxmpm model: the domain is the unit box less the 3-cell wall band."""
     import jax.numpy as jnp
 
+    from .bench_scene import MPMParams, initial_state
     from .constitutive import MATERIALS
     from .model import Body, Model
     from .state import Grid
-
-    sys.path.insert(0, str(_repo_root()))
-    from benchmarks.peers.common import MPMParams, initial_state
 
     p = MPMParams(grid_n=grid_n)
     state = initial_state(n_particles, grid_n)
@@ -62,9 +63,17 @@ def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
     return model, params
 
 
-def _repo_root() -> Path:
-    here = Path(__file__).resolve().parent.parent
-    return here if (here / "benchmarks").is_dir() else Path.cwd()
+def peers_root() -> Path | None:
+    """The source checkout whose ``benchmarks/peers/`` holds the Taichi/Warp peers: the folder
+    above the package, else the working directory; None when neither has them (an installed wheel)."""
+    for root in (Path(__file__).resolve().parent.parent, Path.cwd()):
+        if (root / "benchmarks" / "peers" / "common.py").is_file():
+            return root
+    return None
+
+
+#: Why the peer columns are empty outside a source checkout (one line in the table).
+NO_PEERS = "the Taichi/Warp peers live in benchmarks/peers/ of a source checkout; run from its root to time them"
 
 
 def measure_jax(material: str, n_particles: int, grid_n: int, steps: int, mode: str) -> dict:
@@ -139,7 +148,10 @@ def _child(argv: list[str]) -> None:
     elif kind == "memory":
         out = measure_memory(**rest)
     else:
-        sys.path.insert(0, str(_repo_root()))
+        root = peers_root()
+        if root is None:
+            raise RuntimeError(NO_PEERS)
+        sys.path.insert(0, str(root))
         module = __import__(f"benchmarks.peers.{kind}_step", fromlist=["bench"])
         ok, why = module.available()
         if not ok:
@@ -153,7 +165,7 @@ def _child(argv: list[str]) -> None:
 def _run_child(kind: str, **kwargs) -> dict:
     cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench import _child; _child(sys.argv[1:])",
            kind, json.dumps(kwargs)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=_repo_root())
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=peers_root())
     for line in proc.stdout.splitlines():
         if line.startswith("BENCH-JSON "):
             return json.loads(line[len("BENCH-JSON "):])
@@ -179,17 +191,22 @@ def bench_step(argv: list[str]) -> int:
     parser.add_argument("--grid", type=int, default=64)
     parser.add_argument("--steps", type=int, default=50, help="steps per timed rollout")
     parser.add_argument("--materials", default="elastic,corotated,newtonian,sand,viscoplastic")
+    parser.add_argument("--modes", default="forward,backward", help="forward and/or backward (forward + gradient)")
     parser.add_argument("--no-peers", action="store_true", help="skip Taichi and Warp")
     parser.add_argument("--json", default=None, help="also write the results as JSON")
     args = parser.parse_args(argv)
+    if not set(args.modes.split(",")) <= {"forward", "backward"}:
+        parser.error(f"--modes takes forward and/or backward, got {args.modes!r}")
     common = {"n_particles": args.particles, "grid_n": args.grid, "steps": args.steps}
     rows, peers = [], {}
-    if not args.no_peers:
+    if not args.no_peers and peers_root() is None:
+        print(f"Taichi/Warp: not available: {NO_PEERS}")
+    elif not args.no_peers:
         for kind in ("taichi", "warp"):
             print(f"timing {kind} ...", file=sys.stderr, flush=True)
             peers[kind] = _run_child(kind, **{**common, "steps": max(args.steps, 100)})
     for material in args.materials.split(","):
-        for mode in ("forward", "backward"):
+        for mode in args.modes.split(","):
             print(f"timing jaxmpm {material} {mode} ...", file=sys.stderr, flush=True)
             rows.append({"material": material, "mode": mode, **_run_child("jax", material=material, mode=mode, **common)})
     taichi_ms = peers.get("taichi", {}).get("ms_per_step")
@@ -209,7 +226,7 @@ def bench_step(argv: list[str]) -> int:
             continue
         ratio = r["ms_per_step"] / taichi_ms if taichi_ms else float("nan")
         print(f"{name:<32}{r['ms_per_step']:>10.2f}{ratio:>10.2f}{r['compile_s']:>11.1f}{r['peak_rss_mb']:>13.0f}")
-    if not peers or all("skipped" in p for p in peers.values()):
+    if peers and all("skipped" in p for p in peers.values()):
         print("\n(Taichi/Warp peers not timed: install them with pip install -e \".[bench]\" and run from the repo root)")
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": machine_description(), "peers": peers, "jaxmpm": rows}, indent=2))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -21,22 +20,53 @@ def _progress_bar(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="frame", disable=not sys.stderr.isatty(), leave=False)
 
 
-def _check_output(out: str) -> None:
-    """Fail before a long run when the output cannot be written."""
-    path = Path(out)
+#: Video file extensions ``--video`` accepts (ffmpeg containers, or a GIF).
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".webm", ".gif")
+
+
+def _check_output_file(flag: str, value: str, suffixes: tuple[str, ...] = ()) -> None:
+    """Fail before a long run when the file ``value`` (given as ``flag``) cannot be written."""
+    path = Path(value)
     if path.is_dir():
-        raise JaxmpmError(f"--out {out} is a folder; give a file name")
-    if path.parent.exists() and not os.access(path.parent, os.W_OK):
-        raise JaxmpmError(f"--out {out}: cannot write to {path.parent}")
+        raise JaxmpmError(f"{flag} {value} is a folder; give a file name")
+    if suffixes and path.suffix.lower() not in suffixes:
+        raise JaxmpmError(f"{flag} {value}: unsupported file type {path.suffix or '(none)'!r}; use one of {', '.join(suffixes)}")
+    _check_can_write(flag, value, path.parent)
 
 
-def _write_json(path: Path, payload: dict) -> None:
-    from .observe import atomic_write
+def _check_output_folder(flag: str, value: str) -> None:
+    """Fail before a long run when the folder ``value`` (given as ``flag``) cannot be written."""
+    path = Path(value)
+    if path.exists() and not path.is_dir():
+        raise JaxmpmError(f"{flag} {value} is a file; give a folder")
+    _check_can_write(flag, value, path)
 
-    def write(tmp):
-        Path(tmp).write_text(json.dumps(payload, indent=2) + "\n")
 
-    atomic_write(path, write)
+def _check_can_write(flag: str, value: str, folder: Path) -> None:
+    """Create ``folder`` (as the command would) and write and remove a probe file in it."""
+    import tempfile
+
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise JaxmpmError(f"{flag} {value}: {existing} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise JaxmpmError(f"{flag} {value}: cannot write into {folder}: {err.strerror or err}") from None
+
+
+def _param_names(flag: str, text: str | None) -> list[str] | None:
+    """The comma-separated names of ``--params``; None when not given. Empty or repeated names are errors."""
+    from .identify.parameters import check_names
+
+    return None if text is None else check_names([n.strip() for n in text.split(",")], f"{flag} {text!r}")
+
+
+def _check_at_least(flag: str, value: int | None, least: int) -> None:
+    if value is not None and value < least:
+        raise JaxmpmError(f"{flag} must be >= {least}, got {value}")
 
 
 # --------------------------------------------------------------------------- simulate
@@ -47,9 +77,16 @@ def cmd_simulate(args) -> int:
     from .step import run_frames
     from .scene import load_scene
 
-    _check_output(args.out)
+    _check_output_file("--out", args.out)
+    if args.video:
+        _check_output_file("--video", args.video, VIDEO_SUFFIXES)
+    if args.views:
+        _check_at_least("--views", args.views, 1)
+        _check_at_least("--res", args.res, 8)
     scene = load_scene(args.scene, dtype=_dtype(args))
     model = scene.model
+    if args.views and model.dim != 3:
+        raise JaxmpmError("--views needs a 3D scene")
     print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, "
           f"{model.frames} frames x {model.substeps} substeps (dt = {model.dt:.3g} s)", file=sys.stderr)
     with _progress_bar(model.frames - 1, "simulate") as bar:
@@ -72,10 +109,6 @@ def _render_into(obs, scene, positions, args):
     centred on the particles' bounding box over all frames, far enough to see all of it."""
     from .render import pacnerf_rig, render_views
 
-    if scene.model.dim != 3:
-        raise JaxmpmError("--views needs a 3D scene")
-    if args.views < 1 or args.res < 8:
-        raise JaxmpmError(f"--views must be >= 1 and --res >= 8, got {args.views} and {args.res}")
     lo, hi = positions.min(axis=(0, 1)), positions.max(axis=(0, 1))
     radius = 1.1 * 0.5 * float(np.linalg.norm(hi - lo)) / np.sin(np.deg2rad(45.0) / 2)
     cameras = pacnerf_rig(args.views, radius=radius, target=tuple((lo + hi) / 2), fov_deg=45.0, res=args.res)
@@ -105,14 +138,17 @@ def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None
 
 def cmd_fit(args) -> int:
     from .fit import FitConfig, fit_scene
-    from .identify.parameters import check_names, default_names
+    from .fit_report import format_table, format_timing, write_json
+    from .identify.parameters import default_names
     from .observe import load_observation
     from .scene import load_scene
 
-    _check_output(args.out)
+    _check_output_file("--out", args.out)
+    _check_at_least("--max-steps", args.max_steps, 1)
+    given = _param_names("--params", args.params)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
-    names = check_names([n.strip() for n in args.params.split(",")]) if args.params else default_names(scene.model)
+    names = given or default_names(scene.model)
     weights = parse_weights(args.weights)
     say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames) with {args.method}",
@@ -128,8 +164,8 @@ def cmd_fit(args) -> int:
     config.check()
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
-    _write_json(Path(args.out), payload)
-    print(_format_table(result))
+    write_json(Path(args.out), payload)
+    print(format_table(result))
     if args.profile:
         print(format_timing(result))
     if result.converged:
@@ -139,55 +175,6 @@ def cmd_fit(args) -> int:
           "with \"converged\": false", file=sys.stderr)
     print(f"NOT CONVERGED: {result.message}; wrote {args.out}")
     return 1
-
-
-def _format_table(result, truth: dict | None = None) -> str:
-    rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
-    for name, value in result.values.items():
-        row = (name, _fmt(result.initial.get(name)), _fmt(value), _fmt(result.std.get(name)))
-        if truth:
-            row += (_fmt(truth[name]), _error_text(name, value, truth[name]))
-        rows.append(row)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def format_timing(result) -> str:
-    """The cost breakdown of a fit (``result.timing`` and each stage's), as a table."""
-    t = result.timing
-    lines = [f"time: {t['total_s']:.1f} s in all; planning (contact detection) {t['planning_s']:.1f} s, "
-             f"solvers {t['solver_s']:.1f} s (compilation ~{t['compile_s']:.1f} s), "
-             f"uncertainty {t['uncertainty_s']:.1f} s"]
-    rows = [("stage", "iterations", "start", "1st step", "median step", "compile~", "checks", "rejected", "std")]
-    for k, st in enumerate(result.stages, 1):
-        g = st.get("timing", {})
-        rows.append((f"{k} {st['label'][:28]}", str(st["iterations"]), f"{g.get('start_s', 0):.2f}",
-                     f"{g.get('first_step_s', 0):.2f}", f"{g.get('step_s', 0):.3f}", f"{g.get('compile_s', 0):.2f}",
-                     f"{g.get('checks_s', 0):.2f}", str(g.get("rejected_steps", "-")), f"{g.get('uncertainty_s', 0):.2f}"))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    return "\n".join(lines)
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    v = np.asarray(v, float)
-    if v.ndim:
-        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
-    return f"{float(v):.4g}"
-
-
-def _error_text(name, value, truth) -> str:
-    from .identify.parameters import transform_of
-    from .parameters import Log10
-
-    value, truth = np.asarray(value, float), np.asarray(truth, float)
-    if isinstance(transform_of(name), Log10):
-        return f"|dlog10| = {float(np.max(np.abs(np.log10(value) - np.log10(truth)))):.4f}"
-    return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
 
 
 def parse_weights(text: str | None) -> dict | None:
@@ -219,11 +206,11 @@ def cmd_discover(args) -> int:
     from .scene import load_scene
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise JaxmpmError(f"--out {args.out} is a file; give a folder")
+    _check_output_folder("--out", args.out)
+    _check_at_least("--max-iter", args.max_iter, 1)
+    names = _param_names("--params", args.params)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
-    names = [n.strip() for n in args.params.split(",") if n.strip()] if args.params else None
     exts = [e.strip() for e in args.extensions.split(",") if e.strip()] if args.extensions else None
 
     def say(line):
@@ -247,6 +234,7 @@ def cmd_discover(args) -> int:
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
+    _check_output_folder("--out", args.out)
     run_demo(Path(args.out), quick=args.quick)
     return 0
 

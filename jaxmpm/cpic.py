@@ -417,7 +417,7 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
     n = np.asarray(col.normals)
     tan = np.asarray(col.tangents)
     s = np.asarray(col.scales)
-    ext = col._half_extents(tan, s, col.cutoff)
+    ext = col.half_extents(tan, s, col.cutoff)
     i0, dims = _node_boxes(c - ext - width, c + ext + width, grid)
     best = np.full(grid.num_nodes, np.inf)
     best_disk = np.full(grid.num_nodes, -1, np.int64)

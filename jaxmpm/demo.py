@@ -42,8 +42,8 @@ def demo_scene(quick: bool = False) -> dict:
 
 def run_demo(out: Path, quick: bool = False) -> dict:
     """Run the demo and write ``out/{fit.json, loss.png, droplet.mp4, observation.npz}``."""
-    from .cli import _format_table, _write_json
     from .fit import fit
+    from .fit_report import format_table, write_json
     from .observe import Observation, save_observation
     from .plots import loss_curve, particle_video
     from .scene import load_scene
@@ -74,11 +74,11 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     say("[3/3] writing results")
     payload = result.to_json()
     payload["truth"] = TRUTH
-    _write_json(out / "fit.json", payload)
+    write_json(out / "fit.json", payload)
     loss_curve(out / "loss.png", result.loss, title="droplet: Levenberg–Marquardt on tracks")
     video = particle_video(out / "droplet.mp4", positions, model, overlay=fitted)
     print()
-    print(_format_table(result, truth=TRUTH))
+    print(format_table(result, truth=TRUTH))
     print()
     print(f"{result.message}; identification took {result.seconds:.1f} s")
     print(f"wrote {out / 'fit.json'}, {out / 'loss.png'}, {video}, {out / 'observation.npz'}")

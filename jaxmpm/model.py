@@ -16,6 +16,7 @@ closed over.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from typing import Any
 
 import equinox as eqx
@@ -28,7 +29,25 @@ from .state import Grid, State, make_state
 
 Params = dict[str, Any]
 
-COLLISION_MODES = ("cpic", "grid", "particles")
+
+
+class Collision(str, enum.Enum):
+    """How non-planar colliders act (the scene's ``collision`` key; see :class:`Model`).
+
+    A ``str`` enum: ``Collision("cpic")`` parses the scene value, and a member compares equal
+    to its string (``Collision.CPIC == "cpic"``), so it is a hashable ``jax.jit``-static field.
+    """
+
+    CPIC = "cpic"
+    GRID = "grid"
+    PARTICLES = "particles"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+#: The scene values of :class:`Collision`, in order.
+COLLISION_MODES = tuple(mode.value for mode in Collision)
 
 
 class Body(eqx.Module):
@@ -85,7 +104,7 @@ class Model(eqx.Module):
     frame_dt: float = eqx.field(static=True, default=1.0 / 24.0)
     substeps: int = eqx.field(static=True, default=200)
     frames: int = eqx.field(static=True, default=16)
-    collision: str = eqx.field(static=True, default="cpic")
+    collision: Collision = eqx.field(static=True, default=Collision.CPIC)
     fields: tuple | None = None
     boundary: tuple | None = None
     penetration: float = eqx.field(static=True, default=0.5)
@@ -93,6 +112,7 @@ class Model(eqx.Module):
     def __post_init__(self):
         if self.collision not in COLLISION_MODES:
             raise ValueError(f"collision must be one of {COLLISION_MODES}, got {self.collision!r}")
+        self.collision = Collision(self.collision)
         from .cpic import build_boundary, build_fields, check_planes, is_particle_wise
 
         check_planes(self.colliders, self.grid)
@@ -105,7 +125,7 @@ class Model(eqx.Module):
             raise ValueError("Model.fields / Model.boundary must have one entry per collider")
         # Build (only) what the collision mode needs and is missing; NumPy, once.
         missing = [i for i, c in enumerate(self.colliders) if is_particle_wise(c)]
-        if self.collision in ("cpic", "grid"):
+        if self.collision in (Collision.CPIC, Collision.GRID):
             todo = [i for i in missing if fields[i] is None]
             if todo:
                 built = build_fields([self.colliders[i] for i in todo], self.grid, dtype)
@@ -119,8 +139,6 @@ class Model(eqx.Module):
         self.boundary = boundary
 
     def __check_init__(self):
-        if self.collision not in COLLISION_MODES:
-            raise ValueError(f"collision must be one of {COLLISION_MODES}, got {self.collision!r}")
         if not 0.0 <= self.penetration <= 1.0:
             raise ValueError(f"penetration must be in [0, 1], got {self.penetration}")
 

@@ -11,15 +11,15 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
 
-from .colliders import COLLIDER_TYPES, CONTACTS, asset_path
+from . import memory
+from .colliders import COLLIDER_TYPES, CONTACTS, load_mesh, place, resolve_path, vector
 from .constitutive import MATERIALS
 from .errors import SceneError
-from .model import COLLISION_MODES, Body, Model, Params
+from .model import COLLISION_MODES, Body, Collision, Model, Params
 from .state import Grid
 
 if sys.version_info >= (3, 11):
@@ -50,16 +50,6 @@ def _check_keys(spec: dict, required, optional, where: str) -> None:
             raise SceneError(f"{where}: missing required key {key!r}")
 
 
-def _vector(value, dim: int, where: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{where} must be a list of {dim} numbers, got {value!r}") from None
-    if arr.shape != (dim,) or not np.all(np.isfinite(arr)):
-        raise SceneError(f"{where} must be a list of {dim} finite numbers, got {value!r}")
-    return arr
-
-
 def _number(value, where: str, positive: bool = False, integer: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneError(f"{where} must be a number, got {value!r}")
@@ -79,15 +69,43 @@ def _choice(value, choices, where: str):
     return value
 
 
-def _file(spec: dict, base_dir: Path, where: str) -> Path:
-    value = spec["path"]
-    if not isinstance(value, str) or not value:
-        raise SceneError(f"{where}.path must be a file name (string), got {value!r}")
-    return base_dir / Path(value).expanduser()
-
-
 #: Most lattice points one body may sample (beyond this the positions alone take gigabytes).
 MAX_LATTICE_POINTS = 2**27
+
+#: Counts of grid nodes and steps must fit the simulator's int32 indices and counters.
+MAX_INT32 = 2**31 - 1
+
+
+def _check_frame_times(frame_dt: float, frames: int, dtype) -> None:
+    """Refuse a ``frame_dt`` (s) too small for the frame times ``i * frame_dt`` to be distinct
+    numbers in ``dtype`` (else the observation's times collapse)."""
+    name = np.dtype(dtype).name
+    first = np.asarray(frame_dt, dtype)
+    last = np.asarray((frames - 1) * frame_dt, dtype)
+    # the times are distinct when one frame_dt is well above the spacing of dtype's numbers at the last time
+    if not (first > 0 and np.isfinite(last) and frame_dt > 4 * float(np.spacing(last))):
+        raise SceneError(
+            f"scene: 'frame_dt' = {frame_dt:g} s is too small for {name}: the frame times are not distinct "
+            f"numbers (the smallest usable is about {max(float(np.finfo(dtype).tiny), 4 * float(np.spacing(last))):.3g} s)"
+        )
+
+
+def _substeps(spec: dict, frame_dt: float) -> int:
+    """Substeps per frame from ``substeps``, or from ``dt`` as ``ceil(frame_dt / dt)``; not both."""
+    if "substeps" in spec and "dt" in spec:
+        raise SceneError("scene: give either 'substeps' or 'dt', not both")
+    if "substeps" in spec:
+        substeps = _number(spec["substeps"], "scene: 'substeps'", positive=True, integer=True)
+        where = f"'substeps' = {substeps:g}"
+    elif "dt" in spec:
+        dt = _number(spec["dt"], "scene: 'dt'", positive=True)
+        substeps = max(1.0, math.ceil(min(frame_dt / dt, 2.0 * MAX_INT32) - 1e-9))
+        where = f"'dt' = {dt:g} s gives {substeps:.3g} substeps per frame, which"
+    else:
+        raise SceneError("scene: missing required key 'substeps' (or 'dt')")
+    if substeps > MAX_INT32:
+        raise SceneError(f"scene: {where} is more than the simulator's limit of {MAX_INT32} substeps per frame")
+    return int(substeps)
 
 
 def read_spec(path: str | Path) -> dict:
@@ -115,7 +133,8 @@ def read_spec(path: str | Path) -> dict:
 def _lattice_spacing(dx: float, ppc: int, dim: int, where: str) -> float:
     per_axis = round(ppc ** (1.0 / dim))
     if per_axis < 1 or per_axis**dim != ppc:
-        raise SceneError(f"{where}.ppc = {ppc}: particles per cell must be a perfect {dim}th power (e.g. {2**dim})")
+        power = {2: "square", 3: "cube"}[dim]
+        raise SceneError(f"{where}.ppc = {ppc}: particles per cell must be a perfect {power} in {dim}D (e.g. {2**dim})")
     return dx / per_axis
 
 
@@ -126,6 +145,7 @@ def _lattice_axes(lo: np.ndarray, hi: np.ndarray, h: float, where: str = "body")
             f"{where}: sampling it at particle spacing {h:.3g} m needs {math.prod(counts):.3g} lattice points "
             f"(more than {MAX_LATTICE_POINTS}); use a larger dx or a smaller ppc"
         )
+    memory.check(memory.estimate(len(counts), math.prod(counts), 0, 0, 0, itemsize=4))
     return [lo_d + h * (np.arange(n) + 0.5) for lo_d, n in zip(lo, counts)]
 
 
@@ -133,15 +153,6 @@ def _lattice(lo: np.ndarray, hi: np.ndarray, h: float, where: str = "body") -> n
     axes = _lattice_axes(lo, hi, h, where)
     mesh = np.meshgrid(*axes, indexing="ij")
     return np.stack([m.reshape(-1) for m in mesh], axis=-1)
-
-
-def _rotation_matrix(degrees) -> np.ndarray:
-    rx, ry, rz = np.deg2rad(np.asarray(degrees, float))
-    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
-    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
-    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
 
 
 def _inside_mesh(vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray]) -> np.ndarray:
@@ -199,62 +210,34 @@ def _inside_mesh(vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray]
     return inside.reshape(-1)
 
 
-def load_mesh(path: Path, where: str):
-    """Load a triangle mesh with trimesh, with a clear error on failure."""
-    import trimesh
-
-    if not path.is_file():
-        raise SceneError(f"{where}: mesh file not found: {path}")
-    try:
-        mesh = trimesh.load(path, force="mesh")
-    except Exception as err:  # trimesh raises many types
-        raise SceneError(f"{where}: cannot read mesh {path}: {err}") from None
-    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise SceneError(f"{where}: mesh {path} has no faces")
-    return mesh
-
-
 def _sample_body(spec: dict, dim: int, dx: float, base_dir: Path, where: str) -> tuple[np.ndarray, float]:
     shape = spec["shape"]
     ppc = int(_number(spec.get("ppc", 2**dim), f"{where}.ppc", positive=True, integer=True))
     h = _lattice_spacing(dx, ppc, dim, where)
     if shape == "box":
-        lo, hi = _vector(spec["lo"], dim, f"{where}.lo"), _vector(spec["hi"], dim, f"{where}.hi")
+        lo, hi = vector(spec["lo"], dim, f"{where}.lo"), vector(spec["hi"], dim, f"{where}.hi")
         if np.any(hi <= lo):
             raise SceneError(f"{where}: box 'hi' must exceed 'lo' on every axis, got lo={lo.tolist()} hi={hi.tolist()}")
         x = _lattice(lo, hi, h, where)
     elif shape == "sphere":
-        center = _vector(spec["center"], dim, f"{where}.center")
+        center = vector(spec["center"], dim, f"{where}.center")
         radius = _number(spec["radius"], f"{where}.radius", positive=True)
         x = _lattice(center - radius, center + radius, h, where)
         x = x[np.sum((x - center) ** 2, axis=-1) <= radius**2]
     elif shape == "mesh":
         if dim != 3:
             raise SceneError(f"{where}: shape 'mesh' needs dim = 3")
-        path = _file(spec, base_dir, where)
-        if not path.is_file() and not Path(spec["path"]).is_absolute():
-            try:  # a shipped mesh, as for mesh colliders ("bunny.obj")
-                path = Path(asset_path(spec["path"]))
-            except FileNotFoundError:
-                pass
-        mesh = load_mesh(path, where)
-        mesh = mesh.copy()
-        mesh.apply_scale(_number(spec.get("scale", 1.0), f"{where}.scale", positive=True))
-        if "rotate" in spec:
-            rot = np.eye(4)
-            rot[:3, :3] = _rotation_matrix(_vector(spec["rotate"], 3, f"{where}.rotate"))
-            mesh.apply_transform(rot)
-        if "translate" in spec:
-            mesh.apply_translation(_vector(spec["translate"], 3, f"{where}.translate"))
+        import trimesh
+
+        v, f = load_mesh(resolve_path(spec["path"], base_dir, where), where)
+        mesh = trimesh.Trimesh(place(v, spec, where), f, process=False)
         if not mesh.is_watertight:
             raise SceneError(f"{where}: mesh {spec['path']} is not watertight, so its inside is undefined")
         axes = _lattice_axes(mesh.bounds[0], mesh.bounds[1], h, where)
         x = np.stack([m.reshape(-1) for m in np.meshgrid(*axes, indexing="ij")], axis=-1)
         x = x[_inside_mesh(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), axes)]
     elif shape == "points":
-        path = _file(spec, base_dir, where)
-        if not path.is_file():
-            raise SceneError(f"{where}: points file not found: {path}")
+        path = resolve_path(spec["path"], base_dir, where, assets=False)
         try:
             x = np.load(path, allow_pickle=False)
         except (OSError, ValueError, EOFError) as err:
@@ -331,26 +314,22 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     dim = int(dim)
     dx = _number(spec["dx"], "scene: 'dx'", positive=True)
     _check_keys(spec["domain"], ("lo", "hi"), (), "scene.domain")
-    lo = _vector(spec["domain"]["lo"], dim, "scene: 'domain.lo'")
-    hi = _vector(spec["domain"]["hi"], dim, "scene: 'domain.hi'")
+    lo = vector(spec["domain"]["lo"], dim, "scene: 'domain.lo'")
+    hi = vector(spec["domain"]["hi"], dim, "scene: 'domain.hi'")
     if np.any(hi - lo < 2 * dx):
         raise SceneError(f"scene: 'domain' must span at least 2 dx per axis, got lo={lo.tolist()} hi={hi.tolist()}")
     frames = int(_number(spec["frames"], "scene: 'frames'", positive=True, integer=True))
     if frames < 2:
         raise SceneError(f"scene: 'frames' must be >= 2 (frame 0 is the initial state), got {frames}")
     frame_dt = _number(spec["frame_dt"], "scene: 'frame_dt'", positive=True)
-    if "substeps" in spec:
-        substeps = int(_number(spec["substeps"], "scene: 'substeps'", positive=True, integer=True))
-    elif "dt" in spec:
-        dt = _number(spec["dt"], "scene: 'dt'", positive=True)
-        substeps = max(1, math.ceil(frame_dt / dt - 1e-9))
-    else:
-        raise SceneError("scene: missing required key 'substeps' (or 'dt')")
-    gravity = _vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
-    collision = _choice(spec.get("collision", "cpic"), COLLISION_MODES, "scene: 'collision'")
+    substeps = _substeps(spec, frame_dt)
+    gravity = vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
+    collision = Collision(_choice(spec.get("collision", Collision.CPIC.value), COLLISION_MODES, "scene: 'collision'"))
     grid = Grid(lo=tuple(lo.tolist()), hi=tuple(hi.tolist()), dx=float(dx))
-    if grid.num_nodes >= 2**31:  # flat node indices are int32
+    if grid.num_nodes >= MAX_INT32:  # flat node indices are int32
         raise SceneError(f"scene: 'dx' = {dx} is too small for the domain: the grid would have {grid.num_nodes:.3g} nodes")
+    itemsize = np.dtype(dtype).itemsize
+    memory.check(memory.estimate(dim, 0, grid.num_nodes, frames, 0, itemsize))
 
     bodies, body_params = [], []
     body_specs = spec.get("bodies", [])
@@ -369,6 +348,10 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
         collider, cparams = _build_collider(cspec, k, dim, base_dir, dtype)
         colliders.append(collider)
         collider_params.append(cparams)
+    num_particles = sum(len(b.x0) for b in bodies)
+    num_fields = sum(1 for c in collider_specs if c.get("type") != "plane")
+    memory.check(memory.estimate(dim, num_particles, grid.num_nodes, frames, num_fields, itemsize))
+    _check_frame_times(frame_dt, frames, dtype)
     names = [b.name for b in bodies] + [c.name for c in colliders]
     if len(set(names)) != len(names):  # parameters are addressed as "<name>.<parameter>"
         raise SceneError(f"scene: body and collider names must be unique, got {names}")
@@ -390,13 +373,18 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     return Scene(spec=spec, model=model, params=params, base_dir=base_dir)
 
 
+def _kind(spec, key: str, choices, where: str) -> str:
+    """The value of the key that selects an entry's kind (a body's ``shape``, a collider's ``type``)."""
+    if not isinstance(spec, dict):
+        raise SceneError(f"{where}: expected a table/object")
+    if key not in spec:
+        raise SceneError(f"{where}: missing required key {key!r}")
+    return _choice(spec[key], choices, f"{where}.{key}")
+
+
 def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
     where = f"bodies[{k}]"
-    if not isinstance(bspec, dict):
-        raise SceneError(f"{where}: expected a table/object")
-    if "shape" not in bspec:
-        raise SceneError(f"{where}: missing required key 'shape'")
-    shape = _choice(bspec["shape"], _BODY_SHAPES, f"{where}.shape")
+    shape = _kind(bspec, "shape", _BODY_SHAPES, where)
     required, optional = _BODY_SHAPES[shape]
     _check_keys(bspec, ("shape", "material") + required, _BODY_COMMON + optional, where)
     mspec = bspec["material"]
@@ -411,7 +399,8 @@ def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
             raise SceneError(f"{where}.material: parameter {key!r} must be a number, got {val!r}")
     material_values = cls.validate(values, f"{where}.material")
     density = _number(mspec.get("density", 1000.0), f"{where}.material.density", positive=True)
-    velocity = _vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
+    _check_representable({**material_values, "density": density}, dtype, f"{where}.material")
+    velocity = vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
 
     x, vol = _sample_body(bspec, dim, dx, base_dir, where)
     if len(x) == 0:
@@ -430,6 +419,21 @@ def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
     return body, bparams
 
 
+def _check_representable(values: dict, dtype, where: str) -> None:
+    """Refuse material values whose size the float dtype cannot compute with: the step forms
+    products and squares of moduli, stresses and masses, so each magnitude must lie within
+    ``[sqrt(tiny), sqrt(max)]`` of the dtype (float32: about 1e-19 to 1.8e19), or be 0."""
+    info = np.finfo(dtype)
+    top, bottom = float(np.sqrt(info.max)), float(np.sqrt(info.tiny))
+    for key, value in values.items():
+        size = float(np.max(np.abs(np.asarray(value, float))))
+        if size >= top or 0 < size < bottom:
+            raise SceneError(
+                f"{where}.{key} = {value:g} is out of range for {info.dtype.name}, whose squares of it "
+                f"would overflow or vanish (use magnitudes between {bottom:.1g} and {top:.1g}, or --float64)"
+            )
+
+
 def _name(value, where: str) -> str:
     if not isinstance(value, str) or not value or "." in value:
         raise SceneError(f"{where}.name must be a non-empty string without '.', got {value!r}")
@@ -438,11 +442,7 @@ def _name(value, where: str) -> str:
 
 def _build_collider(cspec, k, dim, base_dir, dtype):
     where = f"colliders[{k}]"
-    if not isinstance(cspec, dict):
-        raise SceneError(f"{where}: expected a table/object")
-    if "type" not in cspec:
-        raise SceneError(f"{where}: missing required key 'type'")
-    kind = _choice(cspec["type"], COLLIDER_TYPES, f"{where}.type")
+    kind = _kind(cspec, "type", COLLIDER_TYPES, where)
     ctor, required, optional = COLLIDER_TYPES[kind]
     _check_keys(cspec, ("type",) + tuple(required), _COLLIDER_COMMON + tuple(optional), where)
     _choice(cspec.get("contact", "sticky"), CONTACTS, f"{where}.contact")
@@ -455,8 +455,8 @@ def _build_collider(cspec, k, dim, base_dir, dtype):
     name = _name(cspec.get("name", f"{kind}{k}"), where)
     try:
         collider = ctor(cspec, name, dim, base_dir)
-    except SceneError:
-        raise
+    except SceneError as err:  # the collider names itself; add where it sits in the file
+        raise SceneError(f"{where}: {err}") from None
     except (TypeError, ValueError, IndexError, KeyError) as err:  # e.g. a number where a list belongs
         raise SceneError(f"{where} ({kind} {name!r}): invalid value: {err}") from None
     cparams = {"friction": jnp.asarray(friction, dtype), "restitution": jnp.asarray(restitution, dtype)}

@@ -25,7 +25,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
-from .model import Model, Params
+from .model import Collision, Model, Params
 from .state import (
     Grid,
     State,
@@ -90,7 +90,7 @@ def gather_contact(model: Model, st: Stencil, state: State) -> cpic.Contact | No
 
     ``None`` unless ``model.collision == "cpic"`` and some collider is not a plane.
     """
-    if model.collision != "cpic":
+    if model.collision != Collision.CPIC:
         return None
     return cpic.gather_contact(model.grid, st, state.x, state.tag, state.time, model.colliders, model.fields)
 
@@ -153,7 +153,7 @@ def p2g_boundary(
     their node masses and momenta (kept apart so gravity acts on the material only), or
     ``None`` in the other modes.
     """
-    if model.collision != "particles" or all(b is None for b in model.boundary):
+    if model.collision != Collision.PARTICLES or all(b is None for b in model.boundary):
         return None
     grid = model.grid
     dtype = state.x.dtype
@@ -231,7 +231,7 @@ def apply_grid_colliders(
     for collider, field, cp in zip(model.colliders, model.fields, params["colliders"]):
         if isinstance(collider, Plane):
             sd, normal = collider.signed_distance(nodes, time)
-        elif model.collision == "grid":
+        elif model.collision == Collision.GRID:
             sd, normal = cpic.node_signed_distance(field, collider, model.grid, nodes, time)
         else:
             continue

@@ -122,15 +122,14 @@ def resolve_name(model: Model, params: Params, name: str) -> tuple:
     return ("bodies", owners[0], name)
 
 
-def check_names(names: Sequence[str]) -> list[str]:
-    """``names`` as a list, refusing empty and repeated names (one clear line)."""
+def check_names(names: Sequence[str], where: str = "parameter names") -> list[str]:
+    """``names`` as a list, refusing empty and repeated names (one clear line naming ``where``)."""
     names = list(names)
-    empty = [n for n in names if not isinstance(n, str) or not n.strip()]
-    if empty:
-        raise JaxmpmError(f"parameter names must be non-empty, got {names!r}")
+    if not all(isinstance(n, str) and n.strip() for n in names):
+        raise JaxmpmError(f"{where}: empty parameter name")
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
-        raise JaxmpmError(f"parameter {', '.join(map(repr, repeated))} is named more than once")
+        raise JaxmpmError(f"{where}: {', '.join(repeated)} given more than once")
     return names
 
 

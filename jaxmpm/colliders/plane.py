@@ -1,0 +1,71 @@
+"""The infinite half-space collider (PAC-NeRF's floor)."""
+
+from __future__ import annotations
+
+from typing import Callable, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import SceneError
+from .base import RigidCollider, init_motion
+
+class Plane(RigidCollider):
+    """An infinite half-space ``{x : (x - point)·normal <= 0}`` (the solid side).
+
+    Planes are applied analytically to grid nodes in every collision mode (PAC-NeRF's floor):
+    a half-space has a global inside, so it cannot be tunnelled through and needs no
+    particle-wise treatment. A plane may move rigidly like any collider (``velocity``,
+    ``angular_velocity`` about ``pivot`` = ``point`` by default, or a scripted ``motion``).
+
+    Attributes:
+        point: a point on the plane at t = 0, length D, metres.
+        normal: the outward unit normal at t = 0 (normalised on construction), length D.
+        velocity, angular_velocity, pivot, motion: rigid motion (see :class:`RigidCollider`).
+    """
+
+    name: str = eqx.field(static=True)
+    contact: str = eqx.field(static=True)
+    point: tuple[float, ...] = eqx.field(static=True)
+    normal: tuple[float, ...] = eqx.field(static=True)
+    velocity: tuple[float, ...] = eqx.field(static=True)
+    angular_velocity: tuple[float, ...] = eqx.field(static=True)
+    pivot: tuple[float, ...] = eqx.field(static=True)
+    motion: Callable | None = eqx.field(static=True)
+
+    kind: ClassVar[str] = "plane"
+
+    def __init__(
+        self,
+        point,
+        normal,
+        contact: str = "sticky",
+        name: str = "plane",
+        velocity=None,
+        angular_velocity=None,
+        pivot=None,
+        motion=None,
+    ):
+        point = tuple(float(p) for p in np.asarray(point, float).reshape(-1))
+        dim = len(point)
+        if dim not in (2, 3):
+            raise SceneError(f"collider {name!r}: 'point' must have 2 or 3 components")
+        n = np.asarray(normal, float).reshape(-1)
+        if n.shape != (dim,):
+            raise SceneError(f"collider {name!r}: 'normal' must have {dim} components")
+        norm = float(np.linalg.norm(n))
+        if not np.isfinite(norm) or norm == 0.0:
+            raise SceneError(f"collider {name!r}: 'normal' must be a non-zero vector, got {n.tolist()}")
+        self.point = point
+        self.normal = tuple(float(c) for c in n / norm)
+        init_motion(self, name, contact, dim, velocity, angular_velocity, pivot, np.asarray(point), motion)
+
+    def bounds(self) -> np.ndarray:
+        """A plane is unbounded: ``[-inf, +inf]`` on every axis."""
+        return np.stack([np.full(self.dim, -np.inf), np.full(self.dim, np.inf)])
+
+    def _local_signed_distance(self, X):
+        n = jnp.asarray(self.normal, X.dtype)
+        sd = (X - jnp.asarray(self.point, X.dtype)) @ n
+        return sd, jnp.broadcast_to(n, X.shape)

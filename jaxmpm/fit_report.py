@@ -1,0 +1,75 @@
+"""A fit's result as the user sees it: the terminal table and the ``fit.json`` file (DESIGN §5.3).
+
+Used by the ``jaxmpm fit`` command and by ``jaxmpm demo`` (library code never imports the CLI).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def write_json(path: Path, payload: dict) -> None:
+    """Write ``payload`` as indented JSON, atomically (a temporary file in the same folder, then a rename)."""
+    from .observe import atomic_write
+
+    def write(tmp):
+        Path(tmp).write_text(json.dumps(payload, indent=2) + "\n")
+
+    atomic_write(path, write)
+
+
+def format_table(result, truth: dict | None = None) -> str:
+    """The parameters of a :class:`~jaxmpm.fit.FitResult` as an aligned text table.
+
+    Columns: parameter, initial, estimate, std; with ``truth`` ({name: value}) also the truth and
+    the error (``|dlog10|`` for log10-fitted parameters, else ``|d|`` in the parameter's unit).
+    """
+    rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
+    for name, value in result.values.items():
+        row = (name, _fmt(result.initial.get(name)), _fmt(value), _fmt(result.std.get(name)))
+        if truth:
+            row += (_fmt(truth[name]), _error_text(name, value, truth[name]))
+        rows.append(row)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def format_timing(result) -> str:
+    """Where a fit's time went (``result.timing`` and each stage's ``timing``), as a text table."""
+    t = result.timing
+    lines = [f"time: {t['total_s']:.1f} s in all; planning (contact detection) {t['planning_s']:.1f} s, "
+             f"solvers {t['solver_s']:.1f} s (compilation ~{t['compile_s']:.1f} s), "
+             f"uncertainty {t['uncertainty_s']:.1f} s"]
+    rows = [("stage", "iterations", "start", "median step", "all steps", "checks", "rejected", "std")]
+    for k, st in enumerate(result.stages, 1):
+        g = st.get("timing", {})
+        rows.append((f"{k} {st['label'][:28]}", str(st["iterations"]), f"{g.get('start_s', 0):.2f}",
+                     f"{g.get('step_s', 0):.3f}", f"{g.get('steps_s', 0):.2f}", f"{g.get('checks_s', 0):.2f}",
+                     str(g.get("rejected_steps", "-")), f"{g.get('uncertainty_s', 0):.2f}"))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    v = np.asarray(v, float)
+    if v.ndim:
+        return "[" + ", ".join(f"{x:.4g}" for x in v) + "]"
+    return f"{float(v):.4g}"
+
+
+def _error_text(name, value, truth) -> str:
+    from .identify.parameters import transform_of
+    from .parameters import Log10
+
+    value, truth = np.asarray(value, float), np.asarray(truth, float)
+    if isinstance(transform_of(name), Log10):
+        return f"|dlog10| = {float(np.max(np.abs(np.log10(value) - np.log10(truth)))):.4f}"
+    return f"|d| = {float(np.max(np.abs(value - truth))):.4g}"
