@@ -63,27 +63,9 @@ def particle_frames(positions: np.ndarray, model, overlay: np.ndarray | None = N
     return np.stack(frames)
 
 
-def write_frames(path: str | Path, frames: np.ndarray, fps: int = 12) -> Path:
-    """Write RGB frames as ``.mp4`` (imageio-ffmpeg) or ``.gif``, atomically."""
-    import imageio.v2 as imageio
-
-    from .observe import atomic_write
-
-    path = Path(path)
-
-    def write(tmp):
-        import warnings
-
-        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-        if path.suffix.lower() == ".gif":
-            imageio.mimsave(tmp, list(frames), format="GIF", duration=1.0 / fps, loop=0)
-        else:
-            imageio.mimsave(tmp, list(frames), format="FFMPEG", fps=fps, macro_block_size=8)
-
-    return atomic_write(path, write)
-
-
 def particle_video(path: str | Path, positions: np.ndarray, model, overlay: np.ndarray | None = None) -> Path:
     """A video of the particles (see :func:`particle_frames`)."""
     fps = max(1, round(1.0 / model.frame_dt))
-    return write_frames(path, particle_frames(np.asarray(positions), model, overlay), fps=fps)
+    from .render import write_video
+
+    return write_video(path, particle_frames(np.asarray(positions), model, overlay), fps=fps)

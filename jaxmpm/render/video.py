@@ -147,14 +147,17 @@ def tile_views(images, *, cols: int | None = None, pad: int = 0, fill: int = 255
 
 
 def write_video(path: str | os.PathLike, frames, fps: float = 24.0) -> Path:
-    """Write ``(T, H, W, 3)`` uint8 frames as a video; returns the path written.
+    """Write ``(T, H, W, 3)`` uint8 frames as a video, atomically; returns the path written.
 
     ``.mp4``/``.mov``/``.mkv``/``.webm`` go through imageio-ffmpeg (H.264 for mp4; odd
     sizes are edge-padded to even). If ffmpeg is unavailable or fails, a GIF is written
-    next to it (same name, ``.gif``) with a warning. ``.gif`` writes a GIF directly.
+    next to it (same name, ``.gif``) with a warning. ``.gif`` writes a GIF directly. The file
+    appears only when complete (:func:`jaxmpm.observe.atomic_write`).
     """
     import imageio.v2 as imageio
     import imageio.v3 as iio3
+
+    from ..observe import atomic_write
 
     a = np.asarray(frames)
     if a.ndim == 3:
@@ -164,19 +167,20 @@ def write_video(path: str | os.PathLike, frames, fps: float = 24.0) -> Path:
     if a.dtype != np.uint8:
         a = to_uint8(a) if np.issubdtype(a.dtype, np.floating) else a.astype(np.uint8)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() != ".gif":
         ph, pw = a.shape[1] % 2, a.shape[2] % 2
         if ph or pw:
             a = np.pad(a, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
-        try:
+
+        def write_ffmpeg(tmp):
             with warnings.catch_warnings():
                 # imageio-ffmpeg starts ffmpeg with fork+exec, which is safe here
                 warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called")
-                imageio.mimwrite(path, list(a), fps=fps, macro_block_size=1, quality=8)
-            return path
+                imageio.mimwrite(tmp, list(a), format="FFMPEG", fps=fps, macro_block_size=1, quality=8)
+
+        try:
+            return atomic_write(path, write_ffmpeg)
         except Exception as exc:  # ffmpeg missing or codec failure: fall back to GIF
             warnings.warn(f"could not write {path} with ffmpeg ({exc}); writing a GIF instead")
             path = path.with_suffix(".gif")
-    iio3.imwrite(path, a, duration=1000.0 / fps, loop=0)  # Pillow: milliseconds per frame
-    return path
+    return atomic_write(path, lambda tmp: iio3.imwrite(tmp, a, extension=".gif", duration=1000.0 / fps, loop=0))
