@@ -544,29 +544,26 @@ def health_message(
 def _unstable_message(
     model: Model, frame: int, cfl: float, nan: bool, gain: float, wave: float, cfl_limit: float, energy_limit: float
 ) -> str:
+    """One line: the frame, why it is unhealthy (the first criterion it fails), and a dt that
+    should be stable (the present one divided by a safety factor of the excess, at least 2)."""
     if not wave <= WAVE_CFL_LIMIT:
-        dt = model.dt * WAVE_CFL_LIMIT / (1.25 * wave)
-        return (
-            f"the time step is too large for the stiffest material: a stress wave crosses {wave:.3g} cells per "
-            f"step (> {WAVE_CFL_LIMIT:g}), so the simulation is unstable from the first frame; use dt <= {dt:.3g} s, "
-            f"i.e. substeps >= {math.ceil(model.frame_dt / dt)} per frame instead of {model.substeps} "
-            "(or a softer material or a coarser dx)"
-        )
-    if nan:
+        why = (f"the time step is too large for the stiffest material (a stress wave crosses {wave:.3g} cells "
+               f"per step, > {WAVE_CFL_LIMIT:g})")
+        factor = 1.25 * wave / WAVE_CFL_LIMIT if math.isfinite(wave) else 2.0
+    elif nan:
         why, factor = "NaN values appeared", 2.0
     elif not cfl <= cfl_limit:
         why = f"the CFL number max|v| dt/dx reached {cfl:.3g} (> {cfl_limit:g})"
         factor = 2.0 * cfl / cfl_limit if math.isfinite(cfl) else 2.0
     else:
-        why = (f"kinetic plus potential energy grew by {gain:.3g} units of M |g| dx above its initial value "
+        why = (f"kinetic plus potential energy grew {gain:.3g} units of M |g| dx above its initial value "
                f"(> {energy_limit:g}: energy was created)")
         factor = 2.0
-    dt = model.dt / factor
-    substeps = math.ceil(model.frame_dt / dt)
+    dt = model.dt / max(factor, 2.0)
     return (
         f"the simulation became unstable at frame {frame} (t = {frame * model.frame_dt:.4g} s): {why}; "
-        f"use a smaller dt (dt <= {dt:.3g} s, i.e. substeps >= {substeps} per frame instead of {model.substeps}) "
-        "or a coarser dx"
+        f"use a smaller dt (dt <= {dt:.3g} s, i.e. substeps >= {math.ceil(model.frame_dt / dt)} per frame "
+        f"instead of {model.substeps}) or a coarser dx"
     )
 
 
