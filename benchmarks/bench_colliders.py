@@ -5,6 +5,7 @@
     python benchmarks/bench_colliders.py --cost          # CPU time per step at 25k particles
     python benchmarks/bench_colliders.py --cost --breakdown  # ... and where CPIC's time goes
     python benchmarks/bench_colliders.py --images        # docs/img/colliders_*.png
+    python benchmarks/bench_colliders.py --thickness     # pile height vs plate thickness (+ its picture)
 
 Modes (``collision`` scene key): ``cpic`` (particle-wise CPIC, the default), ``grid``
 (grid-level signed-distance condition, AS-DiffMPM's GOP-DiffMPM) and ``particles`` (heavy
@@ -32,6 +33,8 @@ FLUID = {"model": "newtonian", "mu": 1.0, "kappa": 1e4}
 SAND = {"model": "sand", "friction_angle": 35.0, "E": 2e5}
 ELASTIC = {"model": "elastic", "E": 1e5, "nu": 0.3}
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))  # the drop scenes are shared with tests/test_collider_thickness.py
+import collider_scenes  # noqa: E402
 
 
 # --------------------------------------------------------------------------- scenes
@@ -73,6 +76,43 @@ def thin_plate(dx: float, collision: str, y0: float = 0.405) -> dict:
         "substeps": int(round(1.6 / dx)), "gravity": [0, -9.8], "collision": collision, "bodies": bodies,
         "colliders": [{"type": "mesh", "name": "plate", "points": [[1.1, y0], [-0.1, y0]], "contact": "slip"}],
     }
+
+
+def disk_shell(dim: int, centre: np.ndarray, radius: float, count: int) -> dict:
+    """``count`` Gaussian disks on a circle (2D) or sphere (3D, Fibonacci lattice), normals outward,
+    sigma = their spacing (npz arrays)."""
+    if dim == 2:
+        a = 2 * np.pi * np.arange(count) / count
+        n = np.stack([np.cos(a), np.sin(a)], -1)
+        spacing = 2 * np.pi * radius / count
+    else:
+        k = np.arange(count) + 0.5
+        polar, azimuth = np.arccos(1 - 2 * k / count), np.pi * (1 + 5**0.5) * k
+        n = np.stack([np.cos(azimuth) * np.sin(polar), np.cos(polar), np.sin(azimuth) * np.sin(polar)], -1)
+        spacing = np.sqrt(4 * np.pi / count) * radius
+    return {"centers": centre + radius * n, "normals": n, "scales": np.full((count, dim - 1), spacing)}
+
+
+#: The disk shells of the leak table: (dim, dx, disks, radius).
+DISK_SHELLS = ((2, 0.02, 120, 0.2), (3, 0.04, 1500, 0.2))
+
+
+def disks_drop(dim: int, dx: float, count: int, radius: float, collision: str, folder: Path) -> tuple[dict, np.ndarray]:
+    """A fluid block dropped at 2 m/s onto a closed shell of disks (a ring in 2D, a sphere in
+    3D) centred at (0.5, 0.35[, 0.5]), 10 frames of 1/24 s, ``substeps = 2/dx``; returns the spec
+    and the shell's centre."""
+    centre = np.array([0.5, 0.35, 0.5][:dim])
+    path = folder / f"shell_{dim}d_{count}.npz"
+    np.savez(path, **disk_shell(dim, centre, radius, count))
+    half = 0.1
+    return {
+        "dim": dim, "dx": dx, "domain": {"lo": [0.0] * dim, "hi": [1.0] * dim}, "frames": 10, "frame_dt": 1 / 24,
+        "substeps": int(round(2.0 / dx)), "gravity": [0.0, -9.8, 0.0][:dim], "collision": collision,
+        "bodies": [{"shape": "box", "lo": [0.5 - half, 0.6, 0.5 - half][:dim], "hi": [0.5 + half, 0.75, 0.5 + half][:dim],
+                    "velocity": [0.0, -2.0, 0.0][:dim], "material": FLUID}],
+        "colliders": [{"type": "plane", "name": "floor", "point": [0.0] * dim, "normal": [0.0, 1.0, 0.0][:dim]},
+                      {"type": "disks", "name": "shell", "path": str(path)}],
+    }, centre
 
 
 COST_PARTICLES = 25_000
@@ -155,7 +195,95 @@ def accuracy(quick: bool = False) -> list[dict]:
                            nan=nan, secs=secs)
                 rows.append(row)
                 _print_row(row)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for dim, dx, count, radius in DISK_SHELLS:
+            for mode in MODES:
+                spec, centre = disks_drop(dim, dx, count, radius, mode, Path(tmp))
+                _, _, x, nan, secs = rollout(spec)
+                depth = radius - np.linalg.norm(x - centre, axis=-1)  # inside the shell
+                row = dict(scene=f"disks {dim}D ({count} disks)", dx=dx, mode=mode, n=x.shape[1],
+                           depth=np.nanmax(depth), leaked=int(np.sum(np.nanmax(depth, axis=0) > 0.5 * dx)),
+                           nan=nan, secs=secs)
+                rows.append(row)
+                _print_row(row)
     return rows
+
+
+# --------------------------------------------------------------------------- thickness
+
+
+def thickness(out_dir: Path = ROOT / "docs" / "img") -> list[dict]:
+    """Pile thickness of the 2D sand drop (tests/collider_scenes.py: dx = 0.02 m, 0.4 s) on
+    boxes 0.1 to 8 cells thick, on and between node rows, per mode, against the plane's; and
+    the picture ``docs/img/colliders_thickness.png``."""
+    import tempfile
+
+    cs = collider_scenes
+    dx = cs.drop_substeps(2)[0]
+    rows = []
+    print("\n### Pile on thin boxes (2D sand, dx = 0.02 m)\n")
+    print("| box thickness (dx) | placement | mode | pile thickness (mm) | footprint (mm) | lowest particle (mm) |")
+    print("|---|---|---|---|---|---|")
+    plates = list(cs.THICKNESSES) + [cs.THICK]
+    snapshots = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        spec, tops = cs.drop_spec(2, "sand", [("plane", None, True)], tmp)
+        plane = cs.drop_run(spec, tops)[0][0]
+        print(f"| plane | on a node row | analytic | {1e3 * plane['thickness']:.1f} | {1e3 * plane['footprint']:.0f} | "
+              f"{1e3 * plane['lowest']:+.1f} |", flush=True)
+        for mode in ("cpic", "grid"):
+            for on_row in (True, False):
+                stations = [("box", t, on_row) for t in plates]
+                spec, tops = cs.drop_spec(2, "sand", stations, tmp, collision=mode)
+                piles, traj = cs.drop_run(spec, tops)
+                for i, (t, p) in enumerate(zip(plates, piles)):
+                    row = dict(plate=t, on_row=on_row, mode=mode, **p)
+                    rows.append(row)
+                    where = "on a node row" if on_row else "between rows"
+                    print(f"| {t:g} | {where} | {mode} | {1e3 * p['thickness']:.1f} | {1e3 * p['footprint']:.0f} | "
+                          f"{1e3 * p['lowest']:+.1f} |", flush=True)
+                    if t == 0.3 and not on_row:
+                        sl = load_scene(spec).model.body_slices()[i]
+                        snapshots[mode] = (np.asarray(traj.x[-1, sl]), tops[i], cs.station_centre(i))
+    _thickness_plot(rows, plane, snapshots, dx, out_dir / "colliders_thickness.png")
+    return rows
+
+
+def _thickness_plot(rows, plane, snapshots, dx, target: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), gridspec_kw={"width_ratios": [1.3, 1, 1]})
+    ax = axes[0]
+    for mode, colour in (("cpic", "C0"), ("grid", "C3")):
+        for on_row, style in ((True, "o-"), (False, "s--")):
+            pick = [r for r in rows if r["mode"] == mode and r["on_row"] == on_row]
+            where = "on a node row" if on_row else "between rows"
+            ax.plot([r["plate"] for r in pick], [1e3 * r["thickness"] for r in pick], style, color=colour,
+                    label=f"{mode}, {where}")
+    ax.axhline(1e3 * plane["thickness"], color="0.4", lw=1, label="plane")
+    ax.set_xscale("log")
+    ax.set_xlabel("box thickness (cells)")
+    ax.set_ylabel("pile thickness (mm)")
+    ax.set_title("sand dropped on a box, 0.4 s", fontsize=10)
+    ax.legend(fontsize=7)
+    for ax, mode in zip(axes[1:], ("cpic", "grid")):
+        x, top, x0 = snapshots[mode]
+        ax.add_patch(plt.Rectangle((x0 - 0.3, top - 0.3 * dx), 0.6, 0.3 * dx, color="k"))
+        ax.scatter(x[:, 0], x[:, 1], s=2)
+        ax.set_xlim(x0 - 0.32, x0 + 0.32)
+        ax.set_ylim(top - 0.12, top + 0.12)
+        ax.set_aspect("equal")
+        ax.set_title(f"{mode}: box 0.3 dx thick, between node rows", fontsize=10)
+    fig.tight_layout()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(target, dpi=110)
+    plt.close(fig)
+    print(f"wrote {target}", flush=True)
 
 
 def _print_row(r):
@@ -297,10 +425,11 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy", action="store_true")
     parser.add_argument("--cost", action="store_true")
     parser.add_argument("--images", action="store_true")
+    parser.add_argument("--thickness", action="store_true", help="pile thickness vs box thickness (+ picture)")
     parser.add_argument("--breakdown", action="store_true", help="with --cost: time CPIC's stages one by one")
     parser.add_argument("--quick", action="store_true", help="fewer resolutions")
     args = parser.parse_args(argv)
-    every = not (args.accuracy or args.cost or args.images)
+    every = not (args.accuracy or args.cost or args.images or args.thickness)
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, x64={jax.config.jax_enable_x64}")
     if every or args.accuracy:
         accuracy(args.quick)
@@ -308,6 +437,8 @@ def main(argv=None) -> int:
         cost(breakdown=args.breakdown)
     if every or args.images:
         images()
+    if every or args.thickness:
+        thickness()
     return 0
 
 

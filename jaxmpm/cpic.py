@@ -68,6 +68,10 @@ class CollisionField(eqx.Module):
         shape: the grid's node shape (static).
         band_width: the band half-width in metres, ``band * dx`` (static).
         name: the collider's name (static).
+        thin: some node's stencil holds affine nodes of *opposed* surfaces (normals more than
+            120 degrees apart: the two faces of a solid thinner than the stencil); particles
+            then judge compatibility against the surface they are near as well (static; see
+            :func:`gather_contact`).
     """
 
     affinity: Bool[Array, " G"]
@@ -81,6 +85,7 @@ class CollisionField(eqx.Module):
     name: str = eqx.field(static=True)
     origin: tuple[float, ...] | None = eqx.field(static=True, default=None)
     dx: float | None = eqx.field(static=True, default=None)
+    thin: bool = eqx.field(static=True, default=False)
 
     def astype(self, dtype) -> CollisionField:
         """The same field with ``distance`` and ``normal`` in ``dtype``."""
@@ -96,6 +101,7 @@ class CollisionField(eqx.Module):
             self.name,
             self.origin,
             self.dx,
+            self.thin,
         )
 
     def on_grid(self, grid: Grid) -> bool:
@@ -182,7 +188,29 @@ def build_collision_field(
         name=collider.name,
         origin=tuple(grid.origin),
         dx=grid.dx,
+        thin=has_opposed_neighbours(aff.reshape(grid.shape), nrm.reshape(tuple(grid.shape) + (-1,))),
     )
+
+
+#: Two surfaces are *opposed* when their unit normals' dot product is below this (more than
+#: 120 degrees apart): the two faces of a thin solid, never the faces meeting at a box's edge.
+OPPOSED_COS = -0.5
+
+
+def has_opposed_neighbours(affinity: np.ndarray, normal: np.ndarray) -> bool:
+    """Whether two affine nodes at most 2 cells apart per axis (so both in one particle's
+    stencil) have opposed normals (NumPy; ``affinity`` shaped like the grid, ``normal`` with a
+    trailing ``D`` axis)."""
+    dim = affinity.ndim
+    n = np.where(affinity[..., None], normal, 0.0)
+    for shift in itertools.product(range(-2, 3), repeat=dim):
+        if shift <= (0,) * dim:  # each unordered pair once
+            continue
+        a = tuple(slice(max(k, 0), n.shape[d] + min(k, 0)) for d, k in enumerate(shift))
+        b = tuple(slice(max(-k, 0), n.shape[d] + min(-k, 0)) for d, k in enumerate(shift))
+        if np.any(np.sum(n[a] * n[b], axis=-1) < OPPOSED_COS):
+            return True
+    return False
 
 
 def stencil_side_bits(side: np.ndarray) -> np.ndarray:
@@ -644,78 +672,149 @@ def _bit(bits, o: int):
     return jnp.bitwise_and(jnp.right_shift(bits, o), 1) > 0
 
 
-def _corner_lookup(grid: Grid, table, x):
-    """Signed distance and normal at ``x`` from the ``2^D`` corners of its cell.
+class NodeSample(eqx.Module):
+    """One stencil or cell-corner node of every particle, as a collider's field sees it.
 
-    Each affine corner's value is carried to the particle along its normal,
-    ``T_c D_c + N_c·(x - x_c)`` (exact for a planar surface), and averaged with the
-    multilinear weights of the affine corners; the normal is the normalised weighted sum.
+    Attributes:
+        weight: the node's interpolation weight for the particle, 0 where the node is not
+            affine, ``(N,)``.
+        affine: whether the node is affine, ``(N,)`` bool.
+        node_sd: the node's signed distance (``+`` side), metres, ``(N,)``.
+        normal: the node's unit ``+`` normal (zero where not affine), ``(N, D)``.
+        offset: ``x_node - x_p`` in the frame of ``normal``, metres, ``(N, D)``.
+    """
+
+    weight: Float[Array, " N"]
+    affine: Bool[Array, " N"]
+    node_sd: Float[Array, " N"]
+    normal: Float[Array, "N D"]
+    offset: Float[Array, "N D"]
+
+
+def _node_sample(weight, row, offset) -> NodeSample:
+    """A :class:`NodeSample` from the node's packed field row ``[side * distance, normal]``."""
+    nrm = row[:, 1:]
+    affine = row_dot(nrm, nrm) > 0.5
+    return NodeSample(jnp.where(affine, weight, 0.0), affine, row[:, 0], nrm, offset)
+
+
+def surface_estimate(nodes: list[NodeSample], dx: float):
+    """The particle's signed distance and normal (``+`` side) from the affine nodes around it.
+
+    Each affine node's signed distance is carried to the particle along its normal,
+    ``s_i - N_i·(x_i - x_p)`` (exact for a planar face) and averaged with the nodes' weights;
+    the normal is the normalised weighted sum of the nodes' normals. Nodes whose normal is
+    *opposed* (:data:`OPPOSED_COS`) to that of the node carrying the largest value are left
+    out: beside a solid thinner than the stencil, the nodes past it belong to its far face,
+    whose plane the particle lies behind (their carried value is minus the particle's
+    distance through the solid); averaging them in gave a wrong side, a normal near zero and
+    a penetration the particle did not have. The face carrying the largest value is the face
+    the particle is in front of (or, if penetrated, the one it penetrated least deeply).
+    Without opposed nodes (every thick collider) nothing is left out.
+
+    Returns:
+        ``phi (N,)`` (``+2 dx`` where no node is affine), ``normal (N, D)`` (``+`` side),
+        whether some node is affine ``(N,)`` bool.
+    """
+    carried = [s.node_sd - row_dot(s.normal, s.offset) for s in nodes]
+    best = jnp.full_like(carried[0], -jnp.inf)
+    ref = jnp.zeros_like(nodes[0].normal)
+    for s, c in zip(nodes, carried):
+        better = s.affine & (c > best)
+        best = jnp.where(better, c, best)
+        ref = jnp.where(better[:, None], s.normal, ref)
+    sw = jnp.zeros_like(carried[0])
+    sphi = jnp.zeros_like(carried[0])
+    snrm = jnp.zeros_like(ref)
+    for s, c in zip(nodes, carried):
+        w = jnp.where(row_dot(s.normal, ref) >= OPPOSED_COS, s.weight, 0.0)
+        sw = sw + w
+        sphi = sphi + w * c
+        snrm = snrm + w[:, None] * s.normal
+    near = sw > 0
+    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx), _safe_normalize(snrm), near
+
+
+def side_bits(nodes: list[NodeSample], phi, normal):
+    """Per particle, bit ``o`` (stencil node ``o``) set where the node is affine on the ``+``
+    side, on the ``-`` side, and where it is an *opposed* node (its normal opposed to the
+    particle's, :data:`OPPOSED_COS`) lying behind / in front of the particle's surface (the
+    plane of signed distance ``phi`` and ``+`` normal ``normal``): four ``(N,)`` int32.
+
+    A node behind the surface a particle is near belongs to the collider for that particle,
+    whatever its own side: below a plate thinner than the stencil the nodes are on the
+    plate's outside like the nodes above, and only the surface the particle is near tells
+    them apart.
+    """
+    bits = [jnp.zeros(phi.shape, jnp.int32) for _ in range(4)]
+    for o, s in enumerate(nodes):
+        opposed = s.affine & (row_dot(s.normal, normal) < OPPOSED_COS)
+        ahead = phi + row_dot(normal, s.offset)
+        flags = (s.affine & (s.node_sd >= 0), s.affine & (s.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
+        bits = [b | jnp.left_shift(f.astype(jnp.int32), o) for b, f in zip(bits, flags)]
+    return tuple(bits)
+
+
+def _corner_lookup(grid: Grid, table, x):
+    """Signed distance and normal at ``x`` from the ``2^D`` corners of its cell (multilinear
+    weights, :func:`surface_estimate`).
 
     Returns:
         ``phi (N,)`` (``+2 dx`` where no corner is affine), ``normal (N, D)`` (``+`` side), and
         whether some corner is affine (``phi`` is meaningful), ``(N,)`` bool.
     """
     dtype = x.dtype
-    n, dim = x.shape
+    dim = x.shape[1]
     xi = (x - jnp.asarray(grid.origin, dtype)) / grid.dx
     cell = jnp.clip(jnp.floor(xi), 0, jnp.asarray(grid.shape, dtype) - 2)
     f = xi - cell
     base = cell.astype(jnp.int32)
     strides = grid_strides(grid.shape)
-    sw = jnp.zeros((n,), dtype)
-    sphi = jnp.zeros((n,), dtype)
-    snrm = jnp.zeros((n, dim), dtype)
+    nodes = []
     for corner in _corners(dim):
         idx = sum((base[:, d] + k) * st for d, (k, st) in enumerate(zip(corner, strides)))
         w = jnp.prod(jnp.stack([f[:, d] if k else 1.0 - f[:, d] for d, k in enumerate(corner)], -1), -1)
-        row = table[idx]
-        sd, nrm = row[:, 0], row[:, 1:]
-        wa = jnp.where(row_dot(nrm, nrm) > 0.5, w, 0.0)
-        to_particle = sd - grid.dx * sum(nrm[:, d] * (k - f[:, d]) for d, k in enumerate(corner))
-        sw = sw + wa
-        sphi = sphi + wa * to_particle
-        snrm = snrm + wa[:, None] * nrm
-    sw, sphi, snrm = materialize((sw, sphi, snrm), jnp.isfinite(x[0, 0]))
-    near = sw > 0
-    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * grid.dx), _safe_normalize(snrm), near
+        offset = grid.dx * jnp.stack([k - f[:, d] for d, k in enumerate(corner)], -1)
+        nodes.append(_node_sample(w, table[idx], offset))
+    return materialize(surface_estimate(nodes, grid.dx), jnp.isfinite(x[0, 0]))
 
 
 def _corners(dim: int):
     return tuple(itertools.product((0, 1), repeat=dim))
 
 
+def _stencil_lookup(grid: Grid, st: Stencil, table):
+    """Side bits of the stencil nodes (:func:`side_bits`) and the particle's signed distance,
+    normal and whether it is measured, from the 3^D stencil nodes of a static field on the
+    simulation grid (used for thin fields, whose opposed nodes need the particle's surface)."""
+    nodes = []
+    for offset in stencil_offsets(grid.dim):
+        index, weight, dpos = offset_terms(grid, st, offset)
+        nodes.append(_node_sample(weight, table[index], grid.dx * dpos))
+    phi, nrm, near = surface_estimate(nodes, grid.dx)
+    return side_bits(nodes, phi, nrm), phi, nrm, near
+
+
 def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, collider, time):
-    """Side bits of the (world) stencil nodes and the particle's signed distance and normal for
-    a moving collider: each stencil node is looked up in the collider's rest frame at
-    ``R(t)^T (x_i - c(t)) + c0`` (nearest lattice node ``j`` plus the first-order correction
-    ``N_j·(X - X_j)``, so sides move continuously with the collider)."""
+    """Side bits of the (world) stencil nodes (:func:`side_bits`) and the particle's signed
+    distance, normal and whether it is measured, for a moving collider: each stencil node is
+    looked up in the collider's rest frame at ``R(t)^T (x_i - c(t)) + c0`` (nearest lattice
+    node ``j`` plus the first-order correction ``N_j·(X - X_j)``, so sides move continuously
+    with the collider)."""
     dtype = x.dtype
-    n, dim = x.shape
     dx = grid.dx
     c, rot = rigid_transform(collider, time, dtype)
     pivot = jnp.asarray(collider.pivot, dtype)
     Xp = pivot + rows_times(x - c, rot)
-    sw = jnp.zeros((n,), dtype)
-    sphi = jnp.zeros((n,), dtype)
-    snrm = jnp.zeros((n, dim), dtype)
-    plus = jnp.zeros((n,), jnp.int32)
-    minus = jnp.zeros((n,), jnp.int32)
-    for o, offset in enumerate(stencil_offsets(dim)):
+    nodes = []
+    for offset in stencil_offsets(grid.dim):
         _, weight, dpos = offset_terms(grid, st, offset)
         Xi = pivot + rows_times(x + dx * dpos - c, rot)  # the world node, in the rest frame
         row, Xj = _lattice_lookup(field, table, Xi)
-        sd, nrm = row[:, 0], row[:, 1:]
-        node_sd = sd + row_dot(nrm, Xi - Xj)
-        affine = row_dot(nrm, nrm) > 0.5
-        wa = jnp.where(affine, weight, 0.0)
-        sw = sw + wa
-        sphi = sphi + wa * (sd + row_dot(nrm, Xp - Xj))
-        snrm = snrm + wa[:, None] * nrm
-        plus = plus | jnp.left_shift((affine & (node_sd >= 0)).astype(jnp.int32), o)
-        minus = minus | jnp.left_shift((affine & (node_sd < 0)).astype(jnp.int32), o)
-    near = sw > 0
-    phi = jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx)
-    return plus, minus, phi, rows_times(_safe_normalize(snrm), rot.T), near
+        sample = _node_sample(weight, row, Xi - Xp)
+        nodes.append(eqx.tree_at(lambda s: s.node_sd, sample, row[:, 0] + row_dot(sample.normal, Xi - Xj)))
+    phi, nrm, near = surface_estimate(nodes, dx)
+    return side_bits(nodes, phi, nrm), phi, rows_times(nrm, rot.T), near
 
 
 def gather_contact(
@@ -736,16 +835,20 @@ def gather_contact(
       some stencil node is affine.
     * **Signed distance and normal** of the particle (``+`` side): from the affine corners
       of its cell, each corner's signed distance carried to the particle along its normal
-      (exact for planar surfaces) and averaged with multilinear weights.
+      (exact for planar surfaces) and averaged with multilinear weights, leaving out the
+      nodes of an opposed face (:func:`surface_estimate`).
     * **Persistent tag**: acquired as ``sign(phi)`` when the particle first comes near (and
       ``phi`` is measured: some cell corner affine), kept while it stays near (this is what
       stops tunnelling: a particle pushed slightly through the surface keeps its side) and
       cleared when it leaves the band.
     * **Compatibility**: a stencil node is incompatible when it is affine and on the side
-      opposite to the particle's tag.
+      opposite to the particle's tag, or (thin fields, moving colliders) when its normal is
+      opposed to the particle's and it lies behind the particle's own surface
+      (:func:`side_bits`): the nodes past a plate thinner than the stencil.
 
-    Moving colliders are looked up in their rest frame per stencil node (3^D look-ups,
-    see ``_moving_lookup``), their normals rotated back to the world.
+    Thin static fields (:attr:`CollisionField.thin`) and moving colliders read all 3^D
+    stencil nodes (moving ones in their rest frame, ``_moving_lookup``, normals rotated back
+    to the world); the stencil's weights then also give the particle's signed distance.
 
     Returns:
         A :class:`Contact`, or ``None`` when no collider is particle-wise.
@@ -763,8 +866,11 @@ def gather_contact(
         col, field = colliders[k], fields[k]
         table = field.rows.astype(dtype)
         moving = bool(getattr(col, "moving", False))
+        behind = ahead = None
         if moving or not field.on_grid(grid):
-            plus, minus, phi, nrm, measured = _moving_lookup(grid, st, x, field, table, col, time)
+            (plus, minus, behind, ahead), phi, nrm, measured = _moving_lookup(grid, st, x, field, table, col, time)
+        elif field.thin:
+            (plus, minus, behind, ahead), phi, nrm, measured = _stencil_lookup(grid, st, table)
         else:
             bits = field.stencil_bits[base]
             plus, minus = bits[:, 0], bits[:, 1]
@@ -778,6 +884,8 @@ def gather_contact(
         new_tag = new_tag.at[:, k].set(t)
         tf = t.astype(dtype)
         inc = jnp.where(t > 0, minus, jnp.where(t < 0, plus, 0))
+        if behind is not None:  # opposed nodes behind the particle's own surface
+            inc = inc | jnp.where(t > 0, behind, jnp.where(t < 0, ahead, 0))
         phis.append(tf * phi)
         normals.append(tf[:, None] * nrm)
         incs.append(inc)

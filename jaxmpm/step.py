@@ -15,11 +15,13 @@ Every function here is pure and dimension-generic (D = 2 or 3 from array shapes)
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import cpic
@@ -56,6 +58,14 @@ __all__ = [
     "simulate",
     "run_frames",
     "Trajectory",
+    "unhealthy",
+    "health_message",
+    "step_with_speed",
+    "mechanical_energy",
+    "energy_scale",
+    "ENERGY_GAIN_LIMIT",
+    "wave_cfl",
+    "WAVE_CFL_LIMIT",
 ]
 
 #: Grid nodes lighter than this times dx^D are treated as empty (PAC-NeRF: 1e-8 dx^3).
@@ -346,6 +356,31 @@ def step(model: Model, params: Params, state: State) -> State:
     backward passes, ``transpose(jvp(<stage>))``) are attributed per stage
     (``benchmarks/profile_step.py``).
     """
+    return step_with_speed(model, params, state)[0]
+
+
+def projected_speed2(
+    grid_v: Float[Array, "G D"], v: Float[Array, "N D"], ghost: cpic.GhostNodes | None, dx: float
+) -> Float[Array, ""]:
+    """The largest squared speed (m^2/s^2) any projection of a substep produced: the grid
+    nodes after the grid update (planes, grid-level colliders, walls), the particles after
+    G2P, and the CPIC ghost velocities ``P`` of particles touching a collider (each counted
+    where its incompatible nodes carry weight). Gradient-free (a health diagnostic)."""
+    stop = jax.lax.stop_gradient
+    speed2 = jnp.maximum(jnp.max(_row_norm2(stop(grid_v))), jnp.max(_row_norm2(stop(v))))
+    for c in range(0 if ghost is None else len(ghost.kinds)):
+        touching = stop(ghost.weight[c]) > cpic.GHOST_WEIGHT_MIN
+        speed2 = jnp.maximum(speed2, jnp.max(jnp.where(touching, _row_norm2(stop(ghost.projected(c, dx))), 0.0)))
+    return speed2
+
+
+def _row_norm2(v):
+    return jnp.sum(v * v, axis=-1)
+
+
+def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, Float[Array, ""]]:
+    """:func:`step`, and the largest squared speed its projections produced
+    (:func:`projected_speed2`; the CFL number of the substep is ``sqrt(speed2) dt / dx``)."""
     dt, grid = model.dt, model.grid
     with jax.named_scope("stencil"):
         st = compute_stencil(grid, state.x)
@@ -360,14 +395,16 @@ def step(model: Model, params: Params, state: State) -> State:
     with jax.named_scope("grid_update"):
         grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
     with jax.named_scope("g2p"):
-        v, C = g2p(grid, st, grid_v, ghost_nodes(model, params, state, st, tau, contact))
+        ghost = ghost_nodes(model, params, state, st, tau, contact)
+        v, C = g2p(grid, st, grid_v, ghost)
         C = _ext.affine(model, params, C)  # extensions: damping
     with jax.named_scope("advect"):
         x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
     tag = state.tag if contact is None else contact.tag
-    return eqx.tree_at(
+    new = eqx.tree_at(
         lambda s: (s.x, s.v, s.C, s.F, s.aux, s.tag, s.time), state, (x, v, C, F, aux, tag, state.time + dt)
     )
+    return new, projected_speed2(grid_v, v, ghost, grid.dx)
 
 
 # --------------------------------------------------------------------------- rollouts
@@ -383,9 +420,14 @@ class Trajectory(eqx.Module):
         x: positions, ``(T, N, D)``.
         v: velocities, ``(T, N, D)``.
         extra: whatever ``observe(state)`` returned, stacked over frames (or None).
-        cfl: max CFL number ``max|v| dt / dx`` over the substeps that led to each frame, ``(T,)``.
+        cfl: max CFL number ``max|v| dt / dx`` over the substeps that led to each frame, the
+            speeds read after every projection (:func:`projected_speed2`), ``(T,)``.
         nan: whether any position is NaN at each frame, ``(T,)``.
         left: number of particles outside the domain at each frame, ``(T,)``.
+        energy_gain: kinetic plus potential energy above its value at t = 0, in units of
+            :func:`energy_scale` (0 when a collider moves: energy is not conserved then), ``(T,)``.
+        wave_cfl: the stress-wave CFL number of the stiffest body (:func:`wave_cfl`; the same
+            at every frame), ``(T,)``.
         final: the state after the last frame.
     """
 
@@ -396,14 +438,133 @@ class Trajectory(eqx.Module):
     cfl: Float[Array, " T"]
     nan: Bool[Array, " T"]
     left: Int[Array, " T"]
+    energy_gain: Float[Array, " T"]
+    wave_cfl: Float[Array, " T"]
     final: State
 
     def first_unstable_frame(self, cfl_limit: float = 1.0) -> int | None:
-        """Index of the first frame whose CFL number exceeds ``cfl_limit`` or that has NaNs."""
-        import numpy as np
-
-        bad = np.asarray(self.nan) | (np.asarray(self.cfl) > cfl_limit) | ~np.isfinite(np.asarray(self.cfl))
+        """Index of the first frame that :func:`unhealthy` flags, or None."""
+        bad = np.asarray(unhealthy(self, cfl_limit))
         return int(np.argmax(bad)) if bad.any() else None
+
+
+# --------------------------------------------------------------------------- health
+#
+# The one health check: every rollout (simulate, run_frames, the CLI, the fitting and
+# discovery loops) judges a frame with ``unhealthy`` and words it with ``health_message``.
+
+#: A frame is unhealthy when its kinetic plus potential energy exceeds the initial value by
+#: more than this many :func:`energy_scale` units. Material and contact only dissipate energy
+#: (elastic energy starts at zero and is never negative); the penetration correction lifts a
+#: few particles by a fraction of a cell (far below one unit); an exploding run gains tens.
+ENERGY_GAIN_LIMIT = 1.0
+
+
+def mechanical_energy(state: State, gravity: Float[Array, " D"]) -> Float[Array, ""]:
+    """Kinetic plus potential energy ``sum m (|v|^2 / 2 - g·x)`` (J; J per metre of depth in 2D)."""
+    g = jnp.asarray(gravity, state.x.dtype)
+    return jnp.sum(state.mass * (0.5 * _row_norm2(state.v) - state.x @ g))
+
+
+def energy_scale(model: Model, state: State, gravity: Float[Array, " D"]) -> Float[Array, ""]:
+    """The unit of :attr:`Trajectory.energy_gain` (J): the energy of lifting the whole body by
+    one cell, ``M |g| dx``, plus that of moving it at one cell per frame, ``M (dx / frame_dt)^2
+    / 2``, plus 1 % of the initial kinetic energy (so it is positive without gravity)."""
+    g = jnp.asarray(gravity, state.x.dtype)
+    total = jnp.sum(state.mass)
+    dx = model.grid.dx
+    kinetic = jnp.sum(state.mass * 0.5 * _row_norm2(state.v))
+    return total * (jnp.sqrt(jnp.sum(g * g)) * dx + 0.5 * (dx / model.frame_dt) ** 2) + 0.01 * kinetic
+
+
+#: Explicit MPM is unstable when a stress wave crosses more than about a cell per step. Measured
+#: on issue 14's sand drop (dx = 0.01 m): stable at ``c dt/dx = 1.04``, sand thrown upward at
+#: 1.30 (with no speed above 0.25 dx/dt and kinetic plus potential energy below its start).
+WAVE_CFL_LIMIT = 1.0
+
+#: Uniaxial compression with which :func:`wave_cfl` probes a material (small enough to stay
+#: elastic, large enough for float32).
+PROBE_STRAIN = 1e-4
+
+
+def wave_cfl(model: Model, params: Params) -> Float[Array, ""]:
+    """The stress-wave CFL number ``c dt / dx`` of the stiffest body (dimensionless).
+
+    ``c = sqrt(M / rho)``, with ``M = -tau_xx / eps`` the stiffness a body's own update
+    (return map and Kirchhoff stress) shows after one step of uniaxial compression ``eps``
+    (:data:`PROBE_STRAIN`) from rest: the P-wave modulus ``lambda + 2 mu`` of the solids,
+    ``7 kappa`` plus ``mu / dt`` (the explicit viscous limit) of the Newtonian fluid.
+    Traceable: differentiable in the material parameters and the density.
+    """
+    dim, dt = model.dim, model.dt
+    out = jnp.zeros((), model.bodies[0].x0.dtype)
+    for body, bp in zip(model.bodies, params["bodies"]):
+        dtype = body.x0.dtype
+        e11 = jnp.zeros((1, dim, dim), dtype).at[0, 0, 0].set(1.0)
+        F_trial = jnp.eye(dim, dtype=dtype)[None] - PROBE_STRAIN * e11
+        aux0 = body.material.init_aux(1, dtype)
+        _, _, tau = body.material.update(F_trial, (-PROBE_STRAIN / dt) * e11, aux0, bp, dt)
+        modulus = jnp.maximum(-tau[0, 0, 0] / PROBE_STRAIN, 0.0)
+        speed = jnp.sqrt(modulus / jnp.asarray(bp["density"], dtype))
+        out = jnp.maximum(out, speed * dt / model.grid.dx)
+    return out
+
+
+def _energy_checked(model: Model) -> bool:
+    """Whether energy must not grow: no collider moves (a moving one may do work)."""
+    return not any(getattr(c, "moving", False) for c in model.colliders)
+
+
+def _frame_unhealthy(cfl, nan, energy_gain, wave, cfl_limit: float, energy_limit: float):
+    return nan | ~(cfl <= cfl_limit) | ~(energy_gain <= energy_limit) | ~(wave <= WAVE_CFL_LIMIT)
+
+
+def unhealthy(traj: Trajectory, cfl_limit: float = 1.0, energy_limit: float = ENERGY_GAIN_LIMIT) -> Bool[Array, " T"]:
+    """Per frame, whether the rollout is unhealthy there: NaN values, a CFL number above
+    ``cfl_limit`` (speeds read after every projection: grid, particles, collider ghosts),
+    kinetic plus potential energy grown by more than ``energy_limit`` units of
+    :func:`energy_scale`, or a stress-wave CFL number above :data:`WAVE_CFL_LIMIT` (every
+    frame then). Traceable (use ``~jnp.any(unhealthy(traj))`` inside ``jit``)."""
+    return _frame_unhealthy(traj.cfl, traj.nan, traj.energy_gain, traj.wave_cfl, cfl_limit, energy_limit)
+
+
+def health_message(
+    model: Model, traj: Trajectory, cfl_limit: float = 1.0, energy_limit: float = ENERGY_GAIN_LIMIT
+) -> str | None:
+    """``None`` for a healthy rollout, else one line naming the first unhealthy frame
+    (:func:`unhealthy`), why, and a dt that should be stable (host side, not traceable)."""
+    bad = np.asarray(unhealthy(traj, cfl_limit, energy_limit))
+    if not bad.any():
+        return None
+    i = int(np.argmax(bad))
+    values = (float(traj.cfl[i]), bool(traj.nan[i]), float(traj.energy_gain[i]), float(traj.wave_cfl[i]))
+    return _unstable_message(model, i, *values, cfl_limit, energy_limit)
+
+
+def _unstable_message(
+    model: Model, frame: int, cfl: float, nan: bool, gain: float, wave: float, cfl_limit: float, energy_limit: float
+) -> str:
+    """One line: the frame, why it is unhealthy (the first criterion it fails), and a dt that
+    should be stable (the present one divided by a safety factor of the excess, at least 2)."""
+    if not wave <= WAVE_CFL_LIMIT:
+        why = (f"the time step is too large for the stiffest material (a stress wave crosses {wave:.3g} cells "
+               f"per step, > {WAVE_CFL_LIMIT:g})")
+        factor = 1.25 * wave / WAVE_CFL_LIMIT if math.isfinite(wave) else 2.0
+    elif nan:
+        why, factor = "NaN values appeared", 2.0
+    elif not cfl <= cfl_limit:
+        why = f"the CFL number max|v| dt/dx reached {cfl:.3g} (> {cfl_limit:g})"
+        factor = 2.0 * cfl / cfl_limit if math.isfinite(cfl) else 2.0
+    else:
+        why = (f"kinetic plus potential energy grew {gain:.3g} units of M |g| dx above its initial value "
+               f"(> {energy_limit:g}: energy was created)")
+        factor = 2.0
+    dt = model.dt / max(factor, 2.0)
+    return (
+        f"the simulation became unstable at frame {frame} (t = {frame * model.frame_dt:.4g} s): {why}; "
+        f"use a smaller dt (dt <= {dt:.3g} s, i.e. substeps >= {math.ceil(model.frame_dt / dt)} per frame "
+        f"instead of {model.substeps}) or a coarser dx"
+    )
 
 
 def _left_domain(grid: Grid, x: Float[Array, "N D"]) -> Int[Array, ""]:
@@ -440,37 +601,45 @@ def simulate(
         frames: number of output frames including t = 0.
 
     Returns:
-        A :class:`Trajectory`.
+        A :class:`Trajectory` (judge its health with :func:`unhealthy`).
     """
-    from .model import initial_state
-
     if checkpoint not in CHECKPOINT_POLICIES:
         raise ValueError(f"checkpoint must be one of {CHECKPOINT_POLICIES}, got {checkpoint!r}")
     frames = model.frames if frames is None else frames
-    model, params = _ext.prepare(model, params)  # extensions: gravity, colliders (no-op unless enabled)
-    if state is None:
-        state = _ext.initial_velocity(model, params, initial_state(model, params))
-    frame = _frame_function(model, params, observe, checkpoint)
-    first = _frame_outputs(model, state, observe, jnp.zeros((), state.x.dtype))
+    model, params, state = _start(model, params, state)
+    frame = _frame_function(model, params, observe, checkpoint, state)
+    first = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), state)
     final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
     out = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
     return _trajectory(model, out, final)
 
 
+def _start(model: Model, params: Params, state: State | None):
+    """The model and params with extensions prepared, and the initial state."""
+    from .model import initial_state
+
+    model, params = _ext.prepare(model, params)  # extensions: gravity, colliders (no-op unless enabled)
+    if state is None:
+        state = _ext.initial_velocity(model, params, initial_state(model, params))
+    return model, params, state
+
+
 def _trajectory(model: Model, out, final: State) -> Trajectory:
-    x, v, extra, cfl, nan, left = out
+    x, v, extra, cfl, nan, left, gain, wave = out
     times = jnp.arange(x.shape[0], dtype=x.dtype) * model.frame_dt
-    return Trajectory(times=times, x=x, v=v, extra=extra, cfl=cfl, nan=nan, left=left, final=final)
+    return Trajectory(
+        times=times, x=x, v=v, extra=extra, cfl=cfl, nan=nan, left=left, energy_gain=gain, wave_cfl=wave, final=final
+    )
 
 
-def _frame_function(model: Model, params: Params, observe, checkpoint):
-    """``frame(state, _) -> (state, outputs)``: ``model.substeps`` steps and the frame's outputs."""
+def _frame_function(model: Model, params: Params, observe, checkpoint, start: State):
+    """``frame(state, _) -> (state, outputs)``: ``model.substeps`` steps and the frame's
+    outputs (energy measured against the ``start`` state)."""
     dt, dx = model.dt, model.grid.dx
 
     def substep(carry, _):
         s, cfl = carry
-        s = step(model, params, s)
-        speed2 = jnp.max(jnp.sum(jax.lax.stop_gradient(s.v) ** 2, axis=-1))
+        s, speed2 = step_with_speed(model, params, s)
         return (s, jnp.maximum(cfl, jnp.sqrt(speed2) * dt / dx)), None
 
     if checkpoint in ("step", "nested"):
@@ -479,7 +648,7 @@ def _frame_function(model: Model, params: Params, observe, checkpoint):
     def frame(s, _):
         zero = jnp.zeros((), s.x.dtype)
         (s, cfl), _ = jax.lax.scan(substep, (s, zero), None, length=model.substeps)
-        return s, _frame_outputs(model, s, observe, cfl)
+        return s, _frame_outputs(model, params, s, observe, cfl, start)
 
     if checkpoint in ("frame", "nested"):
         frame = jax.checkpoint(frame)
@@ -494,38 +663,43 @@ def run_frames(
     observe: Callable[[State], Any] | None = None,
     on_frame: Callable[[int], None] | None = None,
     cfl_limit: float = 1.0,
+    energy_limit: float = ENERGY_GAIN_LIMIT,
 ) -> Trajectory:
     """Forward-only rollout frame by frame from Python, for progress output and early stops.
 
     Same results as :func:`simulate`, but each frame is one jitted call, ``on_frame(i)``
     is called after frame i, and the run stops with a :class:`SimulationError` naming the
-    first frame whose CFL number exceeds ``cfl_limit`` or that produced NaNs.
+    first unhealthy frame (:func:`unhealthy`: NaN, CFL number above ``cfl_limit``, energy
+    grown by more than ``energy_limit``) and suggesting a dt.
     """
     from .errors import SimulationError
-    from .model import initial_state
 
-    model, params = _ext.prepare(model, params)  # extensions: gravity, colliders (no-op unless enabled)
-    if state is None:
-        state = _ext.initial_velocity(model, params, initial_state(model, params))
-    frame = jax.jit(_frame_function(model, params, observe, None))
-    outputs = [_frame_outputs(model, state, observe, jnp.zeros((), state.x.dtype))]
-    for i in range(1, model.frames):
-        state, out = frame(state, None)
-        cfl, nan = float(out[3]), bool(out[4])
-        if nan or not cfl <= cfl_limit:
-            reason = "NaN values appeared" if nan else f"the CFL number reached {cfl:.2f} (> {cfl_limit})"
-            raise SimulationError(
-                f"the simulation became unstable at frame {i} (t = {i * model.frame_dt:.4g} s): {reason}; "
-                f"use a smaller dt (more than {model.substeps} substeps per frame) or a coarser dx"
-            )
+    model, params, state = _start(model, params, state)
+    start = state
+    frame = jax.jit(_frame_function(model, params, observe, None, start))
+    outputs = []
+    out = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), start)
+    for i in range(model.frames):
+        if i > 0:
+            state, out = frame(state, None)
+        values = (float(out[3]), bool(out[4]), float(out[6]), float(out[7]))
+        if _frame_unhealthy(*(np.asarray(v) for v in values), cfl_limit, energy_limit):
+            raise SimulationError(_unstable_message(model, i, *values, cfl_limit, energy_limit))
         outputs.append(out)
-        if on_frame is not None:
+        if on_frame is not None and i > 0:
             on_frame(i)
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outputs)
     return _trajectory(model, stacked, state)
 
 
-def _frame_outputs(model: Model, s: State, observe, cfl):
+def _frame_outputs(model: Model, params: Params, s: State, observe, cfl, start: State):
     extra = observe(s) if observe is not None else None
     nan = jnp.any(jnp.isnan(s.x)) | jnp.any(jnp.isnan(s.v))
-    return s.x, s.v, extra, jax.lax.stop_gradient(cfl), nan, _left_domain(model.grid, s.x)
+    gain = jnp.zeros((), s.x.dtype)
+    if _energy_checked(model):
+        stop = jax.lax.stop_gradient
+        g = params["gravity"]
+        e0 = mechanical_energy(stop(start), g)
+        gain = stop((mechanical_energy(stop(s), g) - e0) / energy_scale(model, stop(start), g))
+    wave = jax.lax.stop_gradient(wave_cfl(model, params))
+    return s.x, s.v, extra, jax.lax.stop_gradient(cfl), nan, _left_domain(model.grid, s.x), gain, wave

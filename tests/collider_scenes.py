@@ -95,3 +95,166 @@ class Incline:
     def height(self, x: np.ndarray) -> np.ndarray:
         """Height of points above the ramp's line."""
         return (x - self.origin) @ self.normal
+
+
+# ------------------------------------------------------------------------------------------
+# "A collider is a collider": the same drop onto every kind and thickness of collider
+# ------------------------------------------------------------------------------------------
+
+#: Materials of the thickness drop (stiff enough to rest, CFL-safe at ``drop_substeps``).
+DROP_MATERIALS = {
+    "sand": {"model": "sand", "friction_angle": 30.0, "density": 2000.0},
+    "newtonian": {"model": "newtonian", "mu": 200.0, "kappa": 1e5},
+    "elastic": ELASTIC,
+}
+#: Box thicknesses of the sweep, in cells.
+THICKNESSES = (0.1, 0.3, 0.5, 1.0, 1.5)
+#: Thickness of the "thick" box, in cells (more than the stencil: no opposed nodes).
+THICK = 8.0
+#: Height of the colliders' top surface on a node row (``on_row``), metres; between two rows
+#: it is half a cell higher.
+DROP_TOP = 0.3
+#: Drop: the body starts this far above the top surface, at this speed (m, m/s).
+DROP_GAP, DROP_SPEED = 0.04, 1.0
+
+
+def drop_top(dx: float, on_row: bool) -> float:
+    """Height of the top surface: on the node row at :data:`DROP_TOP` or half a cell above it."""
+    return DROP_TOP + (0.0 if on_row else 0.5 * dx)
+
+
+#: Spacing of the stations along x (one collider and one body each), metres; a collider
+#: spans +-0.3 m about its station's centre (and [0.2, 0.8] along z in 3D).
+STATION = 0.8
+
+
+def station_centre(i: int) -> float:
+    return 0.5 + STATION * i
+
+
+def _write_square_mesh(folder, x0: float, top: float) -> str:
+    """An open, two-triangle square ``[x0 - 0.3, x0 + 0.3] x [0.2, 0.8]`` at height ``top``, ``+`` up (.obj)."""
+    path = f"{folder}/square_{x0:.3f}_{top:.5f}.obj"
+    with open(path, "w") as f:
+        for x, z in ((x0 - 0.3, 0.2), (x0 + 0.3, 0.2), (x0 + 0.3, 0.8), (x0 - 0.3, 0.8)):
+            f.write(f"v {x} {top} {z}\n")
+        f.write("f 1 3 2\nf 1 4 3\n")  # counter-clockwise seen from +y
+    return path
+
+
+def _write_disks(folder, x0: float, top: float, dim: int, dx: float) -> str:
+    """Gaussian disks (sigma = dx, 2 dx apart) sampling the same top surface, normals up."""
+    axes = [np.arange(x0 - 0.3 + dx, x0 + 0.3, 2 * dx)] + [np.arange(0.2 + dx, 0.8, 2 * dx)] * (dim - 2)
+    tangential = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim - 1)
+    centers = np.insert(tangential, 1, top, axis=1)
+    normals = np.zeros_like(centers)
+    normals[:, 1] = 1.0
+    path = f"{folder}/disks_{dim}d_{x0:.3f}_{top:.5f}.npz"
+    np.savez(path, centers=centers, normals=normals, scales=np.full((len(centers), dim - 1), dx))
+    return path
+
+
+def drop_collider(kind: str, dim: int, dx: float, top: float, x0: float, folder=None, thickness: float = THICK,
+                  name: str = "c") -> dict:
+    """The collider spec whose top surface is at ``top`` over ``[x0 - 0.3, x0 + 0.3]`` (x
+    ``[0.2, 0.8]`` along z in 3D).
+
+    ``kind``: ``plane`` (analytic, unbounded), ``box`` (``thickness`` cells thick, below
+    ``top``), ``mesh`` (zero thickness: a polyline in 2D, a triangulated square in 3D),
+    ``disks`` (:func:`_write_disks`). Files go to ``folder``.
+    """
+    lo, hi = [x0 - 0.3, 0.0, 0.2][:dim], [x0 + 0.3, top, 0.8][:dim]
+    if kind == "plane":
+        return {"type": "plane", "name": name, "point": [0.0, top, 0.0][:dim], "normal": [0.0, 1.0, 0.0][:dim]}
+    if kind == "box":
+        lo[1] = top - thickness * dx
+        return {"type": "box", "name": name, "lo": lo, "hi": hi}
+    if kind == "mesh" and dim == 2:
+        return {"type": "mesh", "name": name, "points": [[x0 + 0.3, top], [x0 - 0.3, top]]}
+    if kind == "mesh":
+        return {"type": "mesh", "name": name, "path": _write_square_mesh(folder, x0, top)}
+    if kind == "disks":
+        return {"type": "disks", "name": name, "path": _write_disks(folder, x0, top, dim, dx)}
+    raise ValueError(kind)
+
+
+def drop_substeps(dim: int) -> tuple[float, int, int]:
+    """``dx``, substeps per frame and frames of the drop (stress-wave CFL <= 0.5, 0.4 s)."""
+    return (0.02, 80, 20) if dim == 2 else (0.05, 40, 20)
+
+
+def drop_spec(dim: int, material: str, stations, folder=None, collision: str = "cpic", contact: str = "sticky",
+              friction: float = 0.0, frames: int | None = None) -> tuple[dict, list[float]]:
+    """Blocks (0.16 x 0.1 m in 2D, 0.2 x 0.1 x 0.2 m in 3D) dropped at 1 m/s from 4 cm above the
+    top surface of each station's collider.
+
+    ``stations``: ``(kind, thickness in cells or None, on_row)`` per station (a ``plane``
+    must be alone). Returns the spec and each station's top-surface height.
+    """
+    dx, substeps, default_frames = drop_substeps(dim)
+    half = 0.08 if dim == 2 else 0.1
+    bodies, colliders, tops = [], [], []
+    for i, (kind, thickness, on_row) in enumerate(stations):
+        x0, top = station_centre(i), drop_top(dx, on_row)
+        col = drop_collider(kind, dim, dx, top, x0, folder, thickness or THICK, name=f"c{i}")
+        colliders.append({**col, "contact": contact, "friction": friction})
+        bodies.append({"shape": "box", "name": f"b{i}", "velocity": [0.0, -DROP_SPEED, 0.0][:dim],
+                       "lo": [x0 - half, top + DROP_GAP, 0.5 - half][:dim],
+                       "hi": [x0 + half, top + DROP_GAP + 0.1, 0.5 + half][:dim],
+                       "material": dict(DROP_MATERIALS[material])})
+        tops.append(top)
+    hi = [station_centre(len(stations) - 1) + 0.5, 1.0, 1.0][:dim]
+    spec = {
+        "dim": dim, "dx": dx, "domain": {"lo": [0.0] * dim, "hi": hi}, "gravity": [0.0, -9.8, 0.0][:dim],
+        "frames": frames or default_frames, "frame_dt": 0.02, "substeps": substeps, "collision": collision,
+        "bodies": bodies, "colliders": colliders,
+    }
+    return spec, tops
+
+
+def body_volumes(model, state):
+    """Per body, ``sum J V0 / sum V0`` (jnp, traceable): J is the stored volume ratio of a
+    Newtonian fluid (``aux``), det F otherwise."""
+    from jaxmpm.constitutive import Newtonian
+
+    out = []
+    for body, sl in zip(model.bodies, model.body_slices()):
+        J = state.aux[sl] if isinstance(body.material, Newtonian) else jnp.linalg.det(state.F[sl])
+        out.append(jnp.sum(J * state.vol0[sl]) / jnp.sum(state.vol0[sl]))
+    return jnp.stack(out)
+
+
+def pile(x: np.ndarray, top: float, x0: float) -> dict:
+    """What a user sees of a pile resting on a surface at ``top`` about ``x0``, from the
+    positions of its last frames ``(T, n, D)`` (m): its height above the surface and its
+    thickness (highest particle minus lowest; the mean over the frames), footprint (extent
+    along x), centre of mass relative to ``(x0, top)``, and the lowest particle over all frames."""
+    y = x[..., 1]
+    return {
+        "height": float(np.mean(y.max(axis=1)) - top),
+        "thickness": float(np.mean(y.max(axis=1) - y.min(axis=1))),
+        "footprint": float(np.mean(np.ptp(x[..., 0], axis=1))),
+        "com": x[-1].mean(axis=0) - np.asarray([x0, top, 0.5][: x.shape[-1]]),
+        "lowest": float(y.min() - top),
+    }
+
+
+def drop_run(spec: dict, tops, last: int = 5) -> tuple[list[dict], object]:
+    """Simulate a drop spec; per station its :func:`pile` over the ``last`` frames (plus
+    ``volume``: :func:`body_volumes` averaged over them, and ``lowest``: over the whole run),
+    and the trajectory."""
+    from jaxmpm.scene import load_scene
+
+    scene = load_scene(spec)
+    model = scene.model
+    traj = jax.jit(lambda p: simulate(model, p, checkpoint=None, observe=lambda s: body_volumes(model, s)))(scene.params)
+    assert not np.asarray(traj.nan).any(), "the rollout produced NaN"
+    x = np.asarray(traj.x)
+    volumes = np.mean(np.asarray(traj.extra[-last:], np.float64), axis=0)
+    out = []
+    for i, (sl, top) in enumerate(zip(model.body_slices(), tops)):
+        p = pile(x[-last:, sl], top, station_centre(i))
+        p["lowest"] = float(x[:, sl, 1].min() - top)
+        p["volume"] = float(volumes[i])
+        out.append(p)
+    return out, traj
