@@ -53,7 +53,7 @@ from .identify.solvers import bounded_levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation
-from .step import simulate
+from .step import simulate, unhealthy
 
 __all__ = [
     "Sequence",
@@ -135,8 +135,7 @@ def default_parameters(model: Model) -> list[str]:
 @eqx.filter_jit
 def _rollout(model, params, frames):
     traj = simulate(model, params, checkpoint=None, frames=frames)
-    healthy = ~jnp.any(traj.nan) & jnp.all(traj.cfl <= 1.0)
-    return Frames.of(traj), healthy
+    return Frames.of(traj), ~jnp.any(unhealthy(traj))
 
 
 @eqx.filter_jit

@@ -17,7 +17,8 @@ the pre-contact frames, when a ``velocity`` is among the names (without per-part
 whose contact is found in a rollout of the guess, first from the first observed interval,
 then again from the frames before the contact of that velocity); (2) the other parameters on
 the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A stage whose
-rollout is unhealthy (NaN, CFL number above ``cfl_limit``) at its starting point, or whose
+rollout is unhealthy (:func:`jaxmpm.step.unhealthy`: NaN, a CFL number above ``cfl_limit``,
+energy growth, a stress-wave CFL number above 1) at its starting point, or whose
 solver stalls against unhealthy trial points, halves dt (doubles the substeps) and restarts
 from the best point so far, up to ``max_dt_halvings`` times in all.
 
@@ -106,7 +107,8 @@ class FitConfig:
         rtol, atol: LM/BFGS tolerances on the step and the loss.
         checkpoint: checkpoint policy of the rollouts.
         max_dt_halvings: how often dt may be halved (in all) after unhealthy rollouts.
-        cfl_limit: a rollout whose CFL number ``max|v| dt/dx`` exceeds this is unhealthy.
+        cfl_limit: a rollout whose CFL number ``max|v| dt/dx`` exceeds this is unhealthy (the
+            one health check, :func:`jaxmpm.step.unhealthy`).
         learning_rates: Adam learning rates by name or leaf (default: each parameter's
             declared rate).
         lr_decay: Adam: the learning rates decay exponentially to ``lr·lr_decay`` over a
@@ -466,16 +468,15 @@ def fit(
             outcome = _solve(stage_method, objective, params_of, y0, c, steps=steps, seed=c.seed + si,
                              progress=progress, offset=total_iterations)
             if outcome.unhealthy_start:
-                ok, why = objective.health(params_of(y0))
-                why = why or "not finite (NaN loss)"
+                why = objective.health(params_of(y0)) or "the loss is not finite (NaN residuals)"
                 if halvings_left <= 0:
                     raise FitError(
-                        f"stage {si + 1} ({stage.label}): the simulation is {why} even with {model.substeps} "
-                        "substeps per frame; try a smaller dt (more substeps) or a different initial guess"
+                        f"stage {si + 1} ({stage.label}), at the starting point, with {model.substeps} substeps per "
+                        f"frame: {why}; or try a different initial guess"
                     )
                 model = model.with_substeps(2 * model.substeps)
                 halvings_left -= 1
-                notes.append(f"stage {si + 1}: {why}; halved dt ({model.substeps} substeps/frame)")
+                notes.append(f"stage {si + 1}: {why} — halved dt ({model.substeps} substeps/frame)")
                 say(notes[-1])
                 continue
             total_iterations += outcome.iterations

@@ -60,7 +60,7 @@ from ..errors import JaxmpmError, ObservationError
 from ..model import Model, Params
 from ..observe import Observation
 from ..state import State, make_state
-from ..step import Trajectory, simulate
+from ..step import Trajectory, health_message, simulate, unhealthy
 
 __all__ = [
     "TERMS",
@@ -762,8 +762,9 @@ class Objective:
     """The loss of a parameter set against an observation (over a time window).
 
     Built by :func:`build_objective`. ``residuals(params, key=None)`` is the weighted
-    residual vector (NaN everywhere when the simulation is unhealthy: NaN values or a CFL
-    number above ``cfl_limit``); ``loss(params, key=None) = sum(residuals**2)``.
+    residual vector (NaN everywhere when the simulation is unhealthy, :func:`jaxmpm.step.unhealthy`:
+    NaN values, a CFL number above ``cfl_limit``, energy growth, a stress-wave CFL number above
+    1); ``loss(params, key=None) = sum(residuals**2)``.
     ``residuals_of(trajectory)`` evaluates a rollout made elsewhere (e.g. inside
     :func:`jaxmpm.sweep`).
 
@@ -797,14 +798,10 @@ class Objective:
     def simulate(self, params: Params) -> Trajectory:
         return simulate(self.model, params, checkpoint=self.checkpoint, frames=self.frames)
 
-    @staticmethod
-    def healthy(traj: Trajectory, cfl_limit: float):
-        return ~jnp.any(traj.nan) & jnp.all(traj.cfl <= cfl_limit)
-
     def residuals(self, params: Params, key=None):
         traj = self.simulate(params)
         r = self.residuals_of(traj, key)
-        return jnp.where(self.healthy(traj, self.cfl_limit), r, jnp.nan)
+        return jnp.where(jnp.any(unhealthy(traj, self.cfl_limit)), jnp.nan, r)
 
     def _term_residuals(self, traj: Trajectory, key=None) -> list:
         frames = Frames.of(traj)
@@ -825,16 +822,11 @@ class Objective:
         traj = jax.jit(self.simulate)(params)
         return {layout.name: float(jnp.sum(r**2)) for layout, r in zip(self.layouts, self._term_residuals(traj))}
 
-    def health(self, params: Params) -> tuple[bool, str]:
-        """Whether the rollout at ``params`` is healthy, and a message naming the first bad frame."""
+    def health(self, params: Params) -> str | None:
+        """None when the rollout at ``params`` is healthy, else the one line of
+        :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
         traj = jax.jit(lambda p: self.simulate(p))(params)
-        cfl, nan = np.asarray(traj.cfl), np.asarray(traj.nan)
-        bad = nan | ~(cfl <= self.cfl_limit)
-        if not bad.any():
-            return True, ""
-        i = int(np.argmax(bad))
-        why = "NaN values appeared" if nan[i] else f"the CFL number reached {cfl[i]:.2f} (> {self.cfl_limit})"
-        return False, f"unstable at frame {i} (t = {i * self.model.frame_dt:.4g} s): {why}"
+        return health_message(self.model, traj, self.cfl_limit)
 
 
 def _default_weights(obs: Observation) -> dict[str, float]:
@@ -882,7 +874,8 @@ def build_objective(
         colors: particle colours for RGB: ``"auto"`` (from the first observed images),
             None (the renderer's default colour) or an ``(N, 3)`` array.
         checkpoint: checkpoint policy of the rollouts.
-        cfl_limit: rollouts whose CFL number exceeds this count as unhealthy (NaN loss).
+        cfl_limit: rollouts whose CFL number exceeds this count as unhealthy (NaN loss; the
+            health check is :func:`jaxmpm.step.unhealthy`).
 
     Raises:
         ObservationError: nothing to fit, too few observed times, mismatched shapes.
