@@ -361,7 +361,7 @@ def initial_velocity(model, params, state):
         return state
     import equinox as eqx
 
-    from .colliders import _cross_omega
+    from .colliders import cross_omega
 
     dtype = state.v.dtype
     dv = jnp.asarray(ext["initial_velocity"]["delta"]).astype(dtype)
@@ -370,7 +370,7 @@ def initial_velocity(model, params, state):
     for body, sl in zip(model.bodies, model.body_slices()):
         x = state.x[sl]
         centre = jnp.mean(body.x0, axis=0).astype(dtype)
-        parts.append(dv + _cross_omega(spin, x - centre))
+        parts.append(dv + cross_omega(spin, x - centre))
     return eqx.tree_at(lambda s: s.v, state, state.v + jnp.concatenate(parts))
 
 

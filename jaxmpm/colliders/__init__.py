@@ -33,7 +33,3 @@ from .spec import place as place
 from .spec import placement as placement
 from .spec import plane_from_spec as plane_from_spec
 from .spec import resolve_path as resolve_path
-
-# jaxmpm/extensions.py (the lead's file) still imports the old private name; remove this
-# alias when it imports ``cross_omega``.
-_cross_omega = cross_omega

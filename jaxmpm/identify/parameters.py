@@ -105,7 +105,8 @@ def resolve_name(model: Model, params: Params, name: str) -> tuple:
         for k, collider in enumerate(model.colliders):
             if collider.name == owner:
                 if leaf not in params["colliders"][k]:
-                    raise JaxmpmError(f"parameter {name!r}: collider {owner!r} has no parameter {leaf!r}")
+                    raise JaxmpmError(f"parameter {name!r}: collider {owner!r} has no parameter {leaf!r}; "
+                                     f"it has: {', '.join(sorted(params['colliders'][k]))}")
                 return ("colliders", k, leaf)
         raise JaxmpmError(f"parameter {name!r}: no body or collider named {owner!r}")
     owners = [k for k, bp in enumerate(params["bodies"]) if name in bp]
