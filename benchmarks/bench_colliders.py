@@ -263,20 +263,25 @@ def _thickness_plot(rows, plane, snapshots, dx, target: Path) -> None:
         for on_row, style in ((True, "o-"), (False, "s--")):
             pick = [r for r in rows if r["mode"] == mode and r["on_row"] == on_row]
             where = "on a node row" if on_row else "between rows"
-            ax.plot([r["plate"] for r in pick], [1e3 * r["thickness"] for r in pick], style, color=colour,
+            held = [r for r in pick if r["lowest"] >= -0.5 * dx]
+            fell = [r for r in pick if r["lowest"] < -0.5 * dx]
+            ax.plot([r["plate"] for r in held], [1e3 * r["height"] for r in held], style, color=colour,
                     label=f"{mode}, {where}")
-    ax.axhline(1e3 * plane["thickness"], color="0.4", lw=1, label="plane")
+            if fell:
+                ax.plot([r["plate"] for r in fell], [0.0] * len(fell), "x", color=colour, ms=9,
+                        label=f"{mode}, {where}: fell through")
+    ax.axhline(1e3 * plane["height"], color="0.4", lw=1, label="plane")
     ax.set_xscale("log")
     ax.set_xlabel("box thickness (cells)")
-    ax.set_ylabel("pile thickness (mm)")
-    ax.set_title("sand dropped on a box, 0.4 s", fontsize=10)
+    ax.set_ylabel("pile top above the box (mm)")
+    ax.set_title("sand dropped on a box (2D, dx = 20 mm), 0.4 s", fontsize=10)
     ax.legend(fontsize=7)
     for ax, mode in zip(axes[1:], ("cpic", "grid")):
         x, top, x0 = snapshots[mode]
         ax.add_patch(plt.Rectangle((x0 - 0.3, top - 0.3 * dx), 0.6, 0.3 * dx, color="k"))
         ax.scatter(x[:, 0], x[:, 1], s=2)
-        ax.set_xlim(x0 - 0.32, x0 + 0.32)
-        ax.set_ylim(top - 0.12, top + 0.12)
+        ax.set_xlim(x0 - 0.35, x0 + 0.35)
+        ax.set_ylim(0.0, top + 0.15)
         ax.set_aspect("equal")
         ax.set_title(f"{mode}: box 0.3 dx thick, between node rows", fontsize=10)
     fig.tight_layout()
