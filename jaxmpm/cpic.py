@@ -783,15 +783,16 @@ def _corners(dim: int):
     return tuple(itertools.product((0, 1), repeat=dim))
 
 
-def _stencil_lookup(grid: Grid, st: Stencil, table):
-    """Side bits of the stencil nodes (:func:`side_bits`) and the particle's signed distance,
-    normal and whether it is measured, from the 3^D stencil nodes of a static field on the
-    simulation grid (used for thin fields, whose opposed nodes need the particle's surface)."""
+def _stencil_lookup(grid: Grid, st: Stencil, x, table):
+    """Side bits of the 3^D stencil nodes (:func:`side_bits`) of a static field on the
+    simulation grid, and the particle's signed distance, normal and whether it is measured
+    (from its cell's corners, :func:`_corner_lookup`, as for every static field). Used for thin
+    fields, whose opposed nodes are told apart by the particle's surface."""
+    phi, nrm, near = _corner_lookup(grid, table, x)
     nodes = []
     for offset in stencil_offsets(grid.dim):
         index, weight, dpos = offset_terms(grid, st, offset)
         nodes.append(_node_sample(weight, table[index], grid.dx * dpos))
-    phi, nrm, near = surface_estimate(nodes, grid.dx)
     return side_bits(nodes, phi, nrm), phi, nrm, near
 
 
@@ -848,7 +849,7 @@ def gather_contact(
 
     Thin static fields (:attr:`CollisionField.thin`) and moving colliders read all 3^D
     stencil nodes (moving ones in their rest frame, ``_moving_lookup``, normals rotated back
-    to the world); the stencil's weights then also give the particle's signed distance.
+    to the world, where the stencil's weights also give the particle's signed distance).
 
     Returns:
         A :class:`Contact`, or ``None`` when no collider is particle-wise.
@@ -870,7 +871,7 @@ def gather_contact(
         if moving or not field.on_grid(grid):
             (plus, minus, behind, ahead), phi, nrm, measured = _moving_lookup(grid, st, x, field, table, col, time)
         elif field.thin:
-            (plus, minus, behind, ahead), phi, nrm, measured = _stencil_lookup(grid, st, table)
+            (plus, minus, behind, ahead), phi, nrm, measured = _stencil_lookup(grid, st, x, table)
         else:
             bits = field.stencil_bits[base]
             plus, minus = bits[:, 0], bits[:, 1]

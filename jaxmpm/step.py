@@ -479,7 +479,7 @@ def energy_scale(model: Model, state: State, gravity: Float[Array, " D"]) -> Flo
 
 #: Explicit MPM is unstable when a stress wave crosses more than about a cell per step. Measured
 #: on issue 14's sand drop (dx = 0.01 m): stable at ``c dt/dx = 1.04``, sand thrown upward at
-#: 1.30 (with no speed above 0.25 dx/dt and kinetic plus potential energy below its start).
+#: 1.27 (with no speed above 0.25 dx/dt and kinetic plus potential energy below its start).
 WAVE_CFL_LIMIT = 1.0
 
 #: Uniaxial compression with which :func:`wave_cfl` probes a material (small enough to stay
@@ -556,8 +556,8 @@ def _unstable_message(
         why = f"the CFL number max|v| dt/dx reached {cfl:.3g} (> {cfl_limit:g})"
         factor = 2.0 * cfl / cfl_limit if math.isfinite(cfl) else 2.0
     else:
-        why = (f"kinetic plus potential energy grew {gain:.3g} units of M |g| dx above its initial value "
-               f"(> {energy_limit:g}: energy was created)")
+        why = (f"kinetic plus potential energy grew {gain:.3g} units (about the energy of lifting the body by "
+               f"one cell) above its initial value (> {energy_limit:g}: energy was created)")
         factor = 2.0
     dt = model.dt / max(factor, 2.0)
     return (
