@@ -13,6 +13,9 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "x64: run this test with float64 enabled (jax.enable_x64), scoped to the test")
+    # without x64 a float64 request silently gives float32: make it an error, so a test that
+    # needs float64 and lacks the marker fails instead of passing on weaker arithmetic
+    config.addinivalue_line("filterwarnings", "error:Explicitly requested dtype.*float64:UserWarning")
 
 
 @pytest.fixture(autouse=True)

@@ -16,3 +16,8 @@ def test_x64_marker_enables_float64():
 
 def test_x64_does_not_leak_into_the_next_test():
     assert jnp.asarray(1.0).dtype == jnp.float32
+
+
+def test_float64_request_without_the_marker_is_an_error():
+    with pytest.raises(UserWarning, match="float64"):
+        jnp.asarray(1.0, jnp.float64)
