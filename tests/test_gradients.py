@@ -33,6 +33,7 @@ def _loss_of(scene, names):
     return loss
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("model", list(MATERIAL_CASES))
 def test_gradient_matches_central_differences(model):
     """d loss / d p for every fitted parameter p of the material (float64, relative error < 1e-3)."""

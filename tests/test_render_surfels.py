@@ -43,6 +43,7 @@ def alpha_centroid(alpha):
     return np.array([(a * (cols + 0.5)).sum(), (a * (rows + 0.5)).sum()]) / a.sum()
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("case", ["facing", "normal", "deformed"])
 def test_single_surfel_matches_ray_plane_intersection(case):
     """α at every pixel equals o·exp(−(u²+v²)/2) of the exact ray–plane hit (float64)."""
@@ -68,6 +69,7 @@ def test_single_surfel_matches_ray_plane_intersection(case):
     np.testing.assert_allclose(np.asarray(out.depth).reshape(-1)[hit], z[hit], rtol=1e-9)
 
 
+@pytest.mark.x64
 def test_compositing_is_depth_sorted():
     # odd size: the centre pixel (4, 4) looks straight at both surfels' centres (α = 0.99)
     cam = look_at((0, 0, -2.0), (0, 0, 0), fov_deg=30.0, width=9, dtype=jnp.float64)
