@@ -50,6 +50,8 @@ def cmd_simulate(args) -> int:
     _check_output(args.out)
     scene = load_scene(args.scene, dtype=_dtype(args))
     model = scene.model
+    if args.views:
+        _check_views(args, model.dim)
     print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, "
           f"{model.frames} frames x {model.substeps} substeps (dt = {model.dt:.3g} s)", file=sys.stderr)
     with _progress_bar(model.frames - 1, "simulate") as bar:
@@ -67,15 +69,19 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+def _check_views(args, dim: int) -> None:
+    """``--views``/``--res`` are usable for a scene of dimension ``dim`` (checked before simulating)."""
+    if dim != 3:
+        raise JaxmpmError("--views needs a 3D scene")
+    if args.views < 1 or args.res < 8:
+        raise JaxmpmError(f"--views must be >= 1 and --res >= 8, got {args.views} and {args.res}")
+
+
 def _render_into(obs, scene, positions, args):
     """Render the trajectory from ``args.views`` cameras of a PAC-NeRF-like rig (45° field of view)
     centred on the particles' bounding box over all frames, far enough to see all of it."""
     from .render import pacnerf_rig, render_views
 
-    if scene.model.dim != 3:
-        raise JaxmpmError("--views needs a 3D scene")
-    if args.views < 1 or args.res < 8:
-        raise JaxmpmError(f"--views must be >= 1 and --res >= 8, got {args.views} and {args.res}")
     lo, hi = positions.min(axis=(0, 1)), positions.max(axis=(0, 1))
     radius = 1.1 * 0.5 * float(np.linalg.norm(hi - lo)) / np.sin(np.deg2rad(45.0) / 2)
     cameras = pacnerf_rig(args.views, radius=radius, target=tuple((lo + hi) / 2), fov_deg=45.0, res=args.res)
