@@ -270,3 +270,27 @@ def test_simulate_views_of_a_2d_scene_is_refused_before_simulating(simulated, tm
     assert code == 2 and err.strip().splitlines()[-1] == "jaxmpm simulate: error: --views needs a 3D scene", err
     assert "particles, grid" not in err  # refused before the scene ran
     assert not (tmp_path / "obs.npz").exists()
+
+
+# --------------------------------------------------------------------------- demo
+
+
+@pytest.mark.slow
+def test_demo_quick_identifies_the_droplet(tmp_path):
+    """``jaxmpm demo --quick`` as a user runs it (a subprocess, float32). Slow: 122 CPU s
+    (11.5 min wall on the shared 2-core machine), so it is not in the default suite."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-m", "jaxmpm.cli", "demo", "--quick", "--out", str(tmp_path)],
+                         capture_output=True, text=True, env=env, timeout=3600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    result = json.loads((tmp_path / "fit.json").read_text())
+    for name, truth in result["truth"].items():
+        assert result["params"][name] == pytest.approx(truth, rel=0.01), name
+    assert {p.name for p in tmp_path.iterdir()} >= {"fit.json", "loss.png", "observation.npz"}
+    assert any(p.suffix in (".mp4", ".gif") for p in tmp_path.iterdir())
