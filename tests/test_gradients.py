@@ -57,10 +57,11 @@ def test_gradient_matches_central_differences(model):
 
 
 def _first_steps_loss(model_name: str, dtype):
-    """``sum |x|^2`` after one substep from rest on a sticky floor (F = I: all singular values
-    equal), as a function of the scene's whole parameter pytree."""
+    """``sum |x|^2`` after two substeps from rest on a sticky floor (F = I, all singular values
+    equal, at the first; F ~ I at the second, where the SVD's derivative acts), as a function
+    of the scene's whole parameter pytree."""
     truth, _ = MATERIAL_CASES[model_name]
-    spec = block_spec(2, truth, dx=0.05, frames=2, substeps=1, floor=FLOOR, lo=[0.4, 0.1], hi=[0.6, 0.3])
+    spec = block_spec(2, truth, dx=0.05, frames=2, substeps=2, floor=FLOOR, lo=[0.4, 0.1], hi=[0.6, 0.3])
     scene = load_scene(spec, dtype=dtype)
     return scene.params, lambda params: jnp.sum(simulate(scene.model, params).x[-1] ** 2)
 
