@@ -1,10 +1,31 @@
-"""Test configuration: strict dtype promotion, float64 available on request."""
+"""Test configuration: strict dtype promotion, and float32 (what users run) unless a test opts in.
+
+A test that needs float64 (finite differences, tight references) says so with
+``@pytest.mark.x64`` (or ``pytestmark = pytest.mark.x64`` for a whole file): x64 is then on
+for that test's setup, call and teardown only (``jax.enable_x64`` is a scoped context).
+"""
 
 import jax
 import pytest
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
-jax.config.update("jax_enable_x64", True)  # tests choose their dtype explicitly
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "x64: run this test with float64 enabled (jax.enable_x64), scoped to the test")
+    # without x64 a float64 request silently gives float32: make it an error, so a test that
+    # needs float64 and lacks the marker fails instead of passing on weaker arithmetic
+    config.addinivalue_line("filterwarnings", "error:Explicitly requested dtype.*float64:UserWarning")
+
+
+@pytest.fixture(autouse=True)
+def _x64_when_marked(request):
+    """Enable x64 around a test marked ``x64``; leave the float32 default otherwise."""
+    if request.node.get_closest_marker("x64") is None:
+        yield
+        return
+    with jax.enable_x64(True):
+        yield
 
 
 @pytest.fixture(params=[2, 3], ids=["2d", "3d"])

@@ -42,8 +42,9 @@ def test_fluid_sand_and_elastic_never_enter_box_bunny_or_armadillo(dx):
         # every material touched this collider ...
         for sl in scene.model.body_slices():
             assert depth[:, sl].max() > -dx, (collider.name, sl)
-        # ... and no particle ever got deeper than dx/2 inside it
-        assert depth.max() < 0.5 * dx, (collider.name, depth.max() / dx)
+        # ... and no particle ever got deeper than 0.2 dx inside it (docs/colliders.md: CPIC keeps
+        # every particle within 0.12 dx; measured here 0.114 dx at dx = 0.05, 0.14 dx at 0.04)
+        assert depth.max() < 0.2 * dx, (collider.name, depth.max() / dx)
 
 
 def _bowl_spec(dx=0.05):
@@ -76,8 +77,9 @@ def test_open_bowl_holds_what_is_poured_in_and_outside_material_falls_past():
     r = np.linalg.norm(x[:, inside] - centre, axis=-1)
     assert x[-1, inside, 1].max() < rim  # it stays in the bowl (below the rim) ...
     assert x[:, inside, 1].min() < 0.1 + 2 * dx  # ... after reaching its bottom
-    assert r.max() < radius + 0.5 * dx  # and never went through the shell
-    # the sand dropped beyond the rim falls past it to the floor
+    assert r.max() < radius + 0.15 * dx  # and never went through the shell (measured 0.07 dx)
+    # the sand dropped beyond the rim falls past it to the floor without touching the shell
+    # (its closest approach, measured: 2.3 dx outside)
     assert x[-1, outside, 1].max() < 0.25
     rr = np.linalg.norm(x[:, outside] - centre, axis=-1)
-    assert rr.min() > radius - 0.5 * dx
+    assert rr.min() > radius + dx

@@ -22,7 +22,7 @@ from jaxmpm.step import simulate
 # ----------------------------------------------------------------------------- ghost nodes
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("dtype", [jnp.float32, pytest.param(jnp.float64, marks=pytest.mark.x64)])
 def test_ghost_mean_offset_is_exact_for_real_weights_and_has_finite_tangents_as_they_vanish(dtype):
     """A stencil that barely reaches a collider's nodes has ``W`` ~ 1e-20 (a product of three
     tiny B-spline weights): dividing by it made the forward-mode tangent NaN while the value
@@ -134,6 +134,7 @@ def test_block_stays_put_when_tan_theta_below_mu():
 # ----------------------------------------------------------------------------- gradients and identification
 
 
+@pytest.mark.x64
 def test_gradient_wrt_friction_restitution_and_material_matches_central_differences():
     inc = Incline(30.0, 0.3, dx=0.04, frames=3, substeps=30, dtype=jnp.float64)
     params = set_param(inc.params, ("bodies", 0, "velocity"), jnp.asarray(1.0 * inc.down - 0.5 * inc.normal))

@@ -86,6 +86,7 @@ def test_masks_images_and_cameras_are_read(tmp_path, variant):
             assert np.all(obs.images[view, frame][~want] == 255)
 
 
+@pytest.mark.x64
 def test_cameras_are_converted_to_opencv_axes(tmp_path):
     """The loaded pose projects the object's centre where it was drawn, and world +y (up)
     appears higher in the image (smaller row) — OpenCV axes: x right, y down, z forward."""

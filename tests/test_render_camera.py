@@ -30,7 +30,7 @@ BIRD_C2W = [
 BIRD_K = [[965.6844046797067, 0.0, 400.0], [0.0, 965.6844046797067, 400.0], [0.0, 0.0, 1.0]]
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("dtype", [jnp.float32, pytest.param(jnp.float64, marks=pytest.mark.x64)])
 def test_look_at_projects_target_to_centre_and_keeps_dtype(dtype):
     cam = look_at((1.0, 2.0, -3.0), (0.1, 0.2, 0.3), (0, 1, 0), 50.0, 40, 30, dtype=dtype)
     assert cam.K.dtype == dtype and cam.cam_to_world.dtype == dtype
@@ -47,6 +47,7 @@ def test_look_at_projects_target_to_centre_and_keeps_dtype(dtype):
     assert math.isclose(float(cam.K[1, 1]), 15.0 / math.tan(math.radians(25.0)), rel_tol=1e-5)
 
 
+@pytest.mark.x64
 def test_project_unproject_and_rays_round_trip():
     cam = look_at((0.3, 1.5, -2.5), (0.0, 0.2, 0.1), (0, 1, 0), 45.0, 33, 21, dtype=jnp.float64)
     pts = jax.random.uniform(jax.random.key(0), (50, 3), jnp.float64, -0.5, 0.5)
@@ -69,6 +70,7 @@ def test_project_unproject_and_rays_round_trip():
     np.testing.assert_allclose(z2, 2.0 * cosz, atol=1e-10)
 
 
+@pytest.mark.x64
 def test_pacnerf_rig_geometry_and_batching():
     target = (0.1, 0.5, -0.2)
     rig = pacnerf_rig(11, radius=3.0, target=target, fov_deg=45.0, res=64, dtype=jnp.float64)
@@ -88,6 +90,7 @@ def test_pacnerf_rig_geometry_and_batching():
     np.testing.assert_array_equal(np.asarray(again.K), np.asarray(rig.K))
 
 
+@pytest.mark.x64
 def test_all_data_json_round_trip(tmp_path):
     rig = pacnerf_rig(4, res=(48, 32), dtype=jnp.float64)
     times = [0.0, 1 / 24, 2 / 24]
@@ -111,6 +114,7 @@ def test_all_data_json_round_trip(tmp_path):
     np.testing.assert_allclose(-c2w_gl[:, 2], to_target, atol=1e-9)
 
 
+@pytest.mark.x64
 def test_pacnerf_bird_pose_convention(tmp_path):
     """A real PAC-NeRF pose: the object at the origin must land at the image centre."""
     path = tmp_path / "all_data.json"

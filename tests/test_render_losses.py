@@ -58,6 +58,7 @@ def test_sample_pixels_and_pointwise_losses():
     assert float(silhouette_l2(a, 1.0 - a)) == 1.0
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("kind", ["volume", "surfels"])
 def test_image_loss_gradients_match_finite_differences(kind):
     h = 0.05

@@ -43,6 +43,7 @@ def alpha_centroid(alpha):
     return np.array([(a * (cols + 0.5)).sum(), (a * (rows + 0.5)).sum()]) / a.sum()
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("case", ["facing", "normal", "deformed"])
 def test_single_surfel_matches_ray_plane_intersection(case):
     """α at every pixel equals o·exp(−(u²+v²)/2) of the exact ray–plane hit (float64)."""
@@ -68,6 +69,7 @@ def test_single_surfel_matches_ray_plane_intersection(case):
     np.testing.assert_allclose(np.asarray(out.depth).reshape(-1)[hit], z[hit], rtol=1e-9)
 
 
+@pytest.mark.x64
 def test_compositing_is_depth_sorted():
     # odd size: the centre pixel (4, 4) looks straight at both surfels' centres (α = 0.99)
     cam = look_at((0, 0, -2.0), (0, 0, 0), fov_deg=30.0, width=9, dtype=jnp.float64)
@@ -141,3 +143,22 @@ def test_culling_is_exact_with_and_without_overflow():
     np.testing.assert_allclose(np.asarray(outs[1].alpha), np.asarray(outs[0].alpha), atol=1e-5)
     np.testing.assert_allclose(np.asarray(outs[1].depth), np.asarray(outs[0].depth), atol=1e-5)
     assert 0.2 < float(outs[0].alpha.mean()) < 0.8
+
+
+def test_2dgs_lowpass_is_a_half_pixel_disc_around_the_projected_centre():
+    """``lowpass="2dgs"``: ``ρ = min(u² + v², 2 |c − (x, y)|²)`` (σ² = ½ px²), so a sub-pixel
+    surfel shows as ``α = o·exp(−d²)`` at a pixel whose centre is ``d`` pixels from its
+    projected centre; without the filter it shows only where a ray hits it (float32)."""
+    cam = look_at((0, 0, -2.0), (0, 0, 0), fov_deg=30.0, width=9)
+    x = jnp.zeros((1, 3))
+
+    def render(lowpass):
+        rend = SurfelRenderer(scale=1e-5, opacity=0.8, lowpass=lowpass, alpha_min=0.0, alpha_max=1.0)
+        return np.asarray(jax.jit(rend.render)(x, cam).alpha)
+
+    alpha = {lp: render(lp) for lp in ("2dgs", None)}
+    rows, cols = np.mgrid[:9, :9]
+    d2 = (rows - 4.0) ** 2 + (cols - 4.0) ** 2  # the origin projects to the centre of pixel (4, 4)
+    np.testing.assert_allclose(alpha["2dgs"], 0.8 * np.exp(-d2), atol=1e-6)
+    assert alpha[None][4, 4] == pytest.approx(0.8, rel=1e-5)
+    assert np.abs(alpha[None][d2 > 0]).max() < 1e-6

@@ -48,6 +48,7 @@ def alpha_centroid(alpha):
     return np.array([(a * (cols + 0.5)).sum(), (a * (rows + 0.5)).sum()]) / a.sum()
 
 
+@pytest.mark.x64
 def test_projected_sphere_formula_centred():
     cam = look_at((0, 0, -2.0), (0, 0, 0), fov_deg=40.0, width=64, dtype=jnp.float64)
     area, c = projected_sphere(cam, (0, 0, 0), 0.3)
@@ -86,6 +87,7 @@ def test_volume_sphere_area_depth_colour(sphere_scene):
     assert np.all(np.abs(centre2 - 32.0) > 8.0)
 
 
+@pytest.mark.x64
 def test_volume_pixel_subsets_chunks_and_dtype():
     x, _ = sphere_particles(0.2, 0.05)
     cam = look_at((0.5, 0.4, -1.5), (0, 0, 0), fov_deg=25.0, width=20, height=16, dtype=jnp.float32)

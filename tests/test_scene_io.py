@@ -164,6 +164,7 @@ def test_toml_and_json_versions_of_a_scene_are_identical(tmp_path, monkeypatch):
     np.testing.assert_allclose(p["colliders"][0]["friction"], 0.3, rtol=1e-6)
 
 
+@pytest.mark.x64
 def test_to_json_reloads_to_the_same_scene_from_anywhere(tmp_path, monkeypatch):
     folder, elsewhere = scene_folder(tmp_path)
     scene = load_scene(folder / "scene.toml", dtype=jnp.float64)
@@ -178,6 +179,7 @@ def test_to_json_reloads_to_the_same_scene_from_anywhere(tmp_path, monkeypatch):
     assert json.loads(again.to_json()) == json.loads(text)
 
 
+@pytest.mark.x64
 def test_box_and_sphere_bodies_are_filled_at_ppc(tmp_path):
     folder, _ = scene_folder(tmp_path)
     scene = load_scene(folder / "scene.toml", dtype=jnp.float64)
@@ -210,6 +212,7 @@ def _mesh_spec(path, dx=0.05, ppc=8, **body):
     }
 
 
+@pytest.mark.x64
 def test_mesh_body_is_filled_inside_the_mesh(tmp_path, monkeypatch):
     trimesh = pytest.importorskip("trimesh")
     folder = tmp_path / "meshes"
@@ -238,6 +241,7 @@ def test_mesh_body_is_filled_inside_the_mesh(tmp_path, monkeypatch):
     np.testing.assert_allclose(np.asarray(cube.x0), np.asarray(box.x0), atol=1e-12)
 
 
+@pytest.mark.x64
 def test_mesh_body_scale_rotate_translate_and_shipped_asset():
     trimesh = pytest.importorskip("trimesh")
     bunny = trimesh.load(asset_path("bunny.obj"), force="mesh")

@@ -12,7 +12,7 @@ from jaxmpm.state import Grid, offset_terms
 from jaxmpm.step import compute_stencil, p2g, simulate, stencil_offsets, step
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("dtype", [jnp.float32, pytest.param(jnp.float64, marks=pytest.mark.x64)])
 def test_free_fall_follows_half_g_t_squared(dim, dtype):
     spec = block_spec(dim, frames=6, substeps=20, dx=0.05, lo=[0.4, 0.6, 0.4][:dim], hi=[0.6, 0.8, 0.6][:dim])
     scene = load_scene(spec, dtype=dtype)
@@ -29,6 +29,7 @@ def test_free_fall_follows_half_g_t_squared(dim, dtype):
     assert int(np.asarray(traj.left).max()) == 0
 
 
+@pytest.mark.x64
 def test_stencil_weights_are_a_partition_of_unity(dim):
     grid = Grid(lo=(0.0,) * dim, hi=(1.0,) * dim, dx=0.1)
     x = jax.random.uniform(jax.random.PRNGKey(0), (50, dim), jnp.float64, 0.05, 0.95)
@@ -42,6 +43,7 @@ def test_stencil_weights_are_a_partition_of_unity(dim):
         assert bool(jnp.all((f >= 0.5) & (f < 1.5)))
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("model_name", ["elastic", "newtonian"])
 def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
     material = {"elastic": {"model": "elastic", "E": 1e4, "nu": 0.3}, "newtonian": {"model": "newtonian", "mu": 1.0, "kappa": 1e4}}[model_name]
@@ -66,7 +68,7 @@ def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
 
 
 def test_single_step_is_pure_and_advances_time(dim):
-    scene = load_scene(block_spec(dim), dtype=jnp.float64)
+    scene = load_scene(block_spec(dim))
     state = initial_state(scene.model, scene.params)
     a = step(scene.model, scene.params, state)
     b = step(scene.model, scene.params, state)
@@ -82,6 +84,7 @@ def _loss(model, checkpoint):
     return loss
 
 
+@pytest.mark.x64
 def test_checkpoint_policies_give_identical_gradients():
     spec = block_spec(2, {"model": "elastic", "E": 3e4, "nu": 0.3}, frames=3, substeps=4, floor={"point": [0, 0.28], "normal": [0, 1], "contact": "slip"})
     scene = load_scene(spec, dtype=jnp.float64)
@@ -92,6 +95,7 @@ def test_checkpoint_policies_give_identical_gradients():
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.x64
 def test_vmap_over_parameter_sets_equals_a_loop():
     spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=3, substeps=10, floor={"point": [0, 0.28], "normal": [0, 1]})
     scene = load_scene(spec, dtype=jnp.float64)
@@ -112,6 +116,7 @@ def test_vmap_over_parameter_sets_equals_a_loop():
     assert float(jnp.max(jnp.abs(batched[0] - batched[3]))) > 1e-3  # the parameter sets differ in outcome
 
 
+@pytest.mark.x64
 def test_forward_and_reverse_mode_agree_for_velocity_and_gravity():
     spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=3, substeps=4, floor={"point": [0, 0.28], "normal": [0, 1]})
     scene = load_scene(spec, dtype=jnp.float64)

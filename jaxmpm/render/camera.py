@@ -121,7 +121,8 @@ class Camera(eqx.Module):
             cam_to_world: ``(4, 4)`` (or ``(V, 4, 4)``), OpenCV axes.
             width, height: image size in pixels (positive ints).
             dtype: floating dtype of the stored arrays (default: that of ``K`` if it is a
-                floating array, else float32).
+                floating array, as JAX stores it: a NumPy float64 ``K`` gives float32 unless
+                x64 is enabled; else float32).
 
         Raises:
             ObservationError: non-positive focal lengths or sizes, a singular or
@@ -129,7 +130,8 @@ class Camera(eqx.Module):
         """
         if dtype is None:
             dt = getattr(K, "dtype", None)
-            dtype = dt if dt is not None and jnp.issubdtype(dt, jnp.floating) else jnp.float32
+            floating = dt is not None and jnp.issubdtype(dt, jnp.floating)
+            dtype = jax.dtypes.canonicalize_dtype(dt) if floating else jnp.float32
         K = jnp.asarray(K, dtype=dtype) if _is_concrete(K) else K.astype(dtype)
         cam_to_world = (
             jnp.asarray(cam_to_world, dtype=dtype)
