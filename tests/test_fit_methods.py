@@ -167,6 +167,7 @@ def test_contact_redetected_with_the_fitted_velocity():
     np.testing.assert_allclose(result.values["velocity"], [0.5, -2.0], atol=0.25)
 
 
+@pytest.mark.x64
 def test_gauss_newton_escape_moves_off_a_collapsed_trust_region_and_recognises_a_minimum():
     """What LM does after its trust region collapsed: from a point far from the minimum of a
     residual whose loss is rough on small scales (a staircase the derivative does not see), the
@@ -195,6 +196,7 @@ def test_gauss_newton_escape_moves_off_a_collapsed_trust_region_and_recognises_a
             assert found is None and verdict == "stationary"
 
 
+@pytest.mark.x64
 @pytest.mark.parametrize("noise", [0.0, 0.1])
 def test_round_off_floor_is_recognised_only_where_the_gauss_newton_step_promises_less_than_the_noise(noise):
     """200 residuals ``(theta - 3) + n(theta)`` with ``n`` a rough term the Jacobian does not see
@@ -222,6 +224,7 @@ def test_round_off_floor_is_recognised_only_where_the_gauss_newton_step_promises
         assert at_round_off_floor(rj, flat, delta) == floor, (start, noise)
 
 
+@pytest.mark.x64
 def test_round_off_probe_is_short_in_every_parameter():
     """Far from the minimum of a strongly nonlinear residual, with a second parameter already
     at its optimum (its Gauss-Newton component ~0): the probe must be short along the step's
@@ -242,6 +245,7 @@ def test_round_off_probe_is_short_in_every_parameter():
     assert not at_round_off_floor(rj, flat, delta)
 
 
+@pytest.mark.x64
 def test_lm_at_the_iteration_limit_is_converged_only_at_a_stationary_point():
     """A stage cut off by ``max_steps`` with the undamped Gauss-Newton step within
     ``1e-3 (1 + |y|)`` (here, for a linear residual, exactly ``3 - y``) has converged and says

@@ -33,6 +33,7 @@ def test_declared_guesses_and_rates_are_pacnerfs(model):
         assert p.learning_rate == PACNERF_LR[name], name
 
 
+@pytest.mark.x64
 def test_fitting_spaces_are_pacnerfs():
     for name in ("E", "mu", "kappa", "yield_stress", "eta", "density"):
         assert isinstance(P.transform_of(name), Log10) and name in P.LOG10_PARAMS
