@@ -46,6 +46,14 @@ __all__ = [
 #: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
 #: which the solver asks whether it stands at a stationary point.
 MAX_REJECTED_STEPS = 6
+#: Round-off floor tests (each one extra evaluation) a stage may spend on single rejected
+#: trials before ``MAX_REJECTED_STEPS``: a rejection at the floor ends the stage at once.
+MAX_FLOOR_CHECKS = 4
+#: ... and only when the Gauss–Newton step promises less than this fraction of the loss: near
+#: a minimum the step promises the loss above its irreducible part, so a promise of less than
+#: half means most of the loss is irreducible (noise or misfit); a larger promise is not at
+#: the floor, and its probe would be wasted.
+FLOOR_GATE = 0.5
 
 
 @dataclass
@@ -233,7 +241,9 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     ``rtol``/``atol``) *and* the undamped Gauss–Newton step there is within
     ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees, m/s); or, after
     ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
-    round-off floor (:func:`at_round_off_floor`). A collapsed trust region away from both is
+    round-off floor (:func:`at_round_off_floor`; this is tested at the first rejections too,
+    at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the floor ends at once
+    instead of spending five more trials). A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance. ``progress(offset + iteration, loss)`` is called every iteration.
@@ -260,7 +270,7 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     step_size, first, since_accept = 1.0, True, 0
     losses = [f0]
     converged, stalled, succeeded, verdict, iterations = False, False, False, "rough", 0
-    escapes, rejected = 0, 0
+    escapes, rejected, floor_checks, at_floor = 0, 0, 0, False
     at_y = None  # (r, J) unscaled at the final y when the stop checks evaluated them
     steps_s, checks_s = [], 0.0
     for iterations in range(1, max_steps + 1):
@@ -293,6 +303,20 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
         # from a minimum; and at the loss's numerical floor the region shrinks without the test
         # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
         # is within tolerance or promises less than the loss's round-off noise.
+        if 0 < since_accept < MAX_REJECTED_STEPS and floor_checks < MAX_FLOOR_CHECKS:
+            # a rejected trial at the loss's round-off floor: no step can be told from noise,
+            # so waiting for more rejections would only spend rollouts
+            t_check = time.perf_counter()
+            at_y = (r / scale, J / scale)
+            delta, _ = _gauss_newton_from(*at_y, y, rtol)
+            promised = float(np.sum((J @ delta) ** 2)) if delta is not None else math.inf  # scaled loss units
+            probe = promised <= FLOOR_GATE * float(r @ r)
+            floor_checks += probe
+            if probe and at_round_off_floor(rj, jnp.asarray(y, dtype), delta, *at_y):
+                checks_s += time.perf_counter() - t_check
+                at_floor = converged = True
+                break
+            checks_s += time.perf_counter() - t_check
         if succeeded or since_accept >= MAX_REJECTED_STEPS:
             t_check = time.perf_counter()
             flat = jnp.asarray(y, dtype)
@@ -311,7 +335,9 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     if r is None:  # the iteration limit came right after an escape: its point is the result
         y, (r, J) = y_eval, (a * scale for a in evaluate(y_eval))
     unhealthy = False
-    if stalled:  # the next trial point: is the simulation unstable there?
+    if at_floor:
+        how = "floor"
+    elif stalled:  # the next trial point: is the simulation unstable there?
         unhealthy = not np.all(np.isfinite(evaluate(y_eval)[0]))
         if unhealthy:
             converged = False
@@ -324,7 +350,8 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
         converged = _gauss_newton_from(*at_y, y, rtol)[1]
         checks_s += time.perf_counter() - t_check
         how = "cap-stationary" if converged else "cap"
-    timing.update(_step_timing(steps_s), checks_s=checks_s, rejected_steps=rejected, escapes=escapes)
+    timing.update(_step_timing(steps_s), checks_s=checks_s, rejected_steps=rejected, escapes=escapes,
+                  floor_checks=floor_checks)
     y_out = unravel(jnp.asarray(y, dtype))
     return SolverOutcome(y_out, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy,
                          jacobian=(rj, at_y), timing=timing)
