@@ -288,7 +288,7 @@ def save_pacnerf(
     folder = Path(folder)
     (folder / "data").mkdir(parents=True, exist_ok=True)
     V, T, H, W = obs.masks.shape
-    cams = Camera(np.asarray(obs.intrinsics, float), np.asarray(obs.cam_to_world, float), W, H)
+    cams = Camera(np.asarray(obs.intrinsics, np.float32), np.asarray(obs.cam_to_world, np.float32), W, H)
     frames = list(range(T))
     times = [float(t) for t in obs.times]
     if background is not None:
