@@ -50,7 +50,7 @@ def sphere_masks(cameras, center, radius) -> np.ndarray:
 def tiny_cameras(views: int = 4, res: int = 48):
     from jaxmpm.render import pacnerf_rig
 
-    return pacnerf_rig(views, radius=1.5, target=(0.3, 0.2, 0.3), res=res, min_elevation_deg=15.0, max_elevation_deg=60.0)
+    return pacnerf_rig(views, radius=1.0, target=(0.3, 0.2, 0.3), res=res, min_elevation_deg=15.0, max_elevation_deg=60.0)
 
 
 def make_dataset(folder, views: int = 4, res: int = 48, frames: int = 6, hint: bool = True):
@@ -64,7 +64,7 @@ def make_dataset(folder, views: int = 4, res: int = 48, frames: int = 6, hint: b
     scene = load_scene(tiny_spec(frames=frames))
     traj = run_frames(scene.model, scene.params)
     cams = tiny_cameras(views, res)
-    r = render_views(np.asarray(traj.x), cams, "volume", spacing=0.025)
+    r = render_views(np.asarray(traj.x), cams, "surfels", spacing=0.025)
     obs = Observation(times=np.asarray(traj.times), masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
                       cam_to_world=r["cam_to_world"])
     plate = np.full((views, res, res, 3), 255, np.uint8)

@@ -133,23 +133,32 @@ def visual_hull(
 
 
 def hull_particles(hull: Hull, spacing: float) -> np.ndarray:
-    """Particles on a lattice of the given spacing inside the hull's occupied voxels.
+    """Particles on a lattice of the given spacing that fill the hull's occupied voxels.
+
+    The lattice is aligned with the hull's grid corner (points at ``lo + (i + ½) spacing``,
+    as the scene's own samplers place them). A point is kept when at least half of its
+    cell — probed at the 8 points ``±spacing/4`` around it — lies in occupied voxels, so the
+    particles' volume follows the hull's volume.
 
     Arguments:
         hull: the body's hull.
         spacing: lattice spacing, m (the scene's ``dx / ppc^(1/3)``).
 
     Returns:
-        ``(N, 3)`` positions, m (lattice points at ``lo + (i + ½) spacing``).
+        ``(N, 3)`` positions, m.
     """
     if not np.any(hull.occupied):
         return np.zeros((0, 3))
     idx = np.argwhere(hull.occupied)
     lo = hull.lo + idx.min(axis=0) * hull.voxel
     hi = hull.lo + (idx.max(axis=0) + 1) * hull.voxel
-    axes = [np.arange(lo[i] + 0.5 * spacing, hi[i], spacing) for i in range(3)]
+    first = np.floor((lo - hull.lo) / spacing).astype(int)
+    last = np.ceil((hi - hull.lo) / spacing).astype(int)
+    axes = [hull.lo[i] + (np.arange(first[i], last[i]) + 0.5) * spacing for i in range(3)]
     pts = np.stack([a.reshape(-1) for a in np.meshgrid(*axes, indexing="ij")], axis=-1)
-    return pts[hull.contains(pts)]
+    probes = 0.25 * spacing * np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], float)
+    filled = np.mean([hull.contains(pts + d) for d in probes], axis=0)
+    return pts[filled >= 0.5]
 
 
 def silhouette_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:

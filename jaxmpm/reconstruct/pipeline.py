@@ -33,6 +33,9 @@ DEFAULT_DENSITY = 1000.0
 #: Default substeps: dt = dx / SUBSTEP_SPEED (the speed of sound of the default guesses,
 #: about 10 m/s, with a margin of 5).
 SUBSTEP_SPEED = 50.0
+#: Renderer of the re-projected silhouettes (IoU, overlay video): surfels need no grid, so a
+#: body's silhouette does not depend on the bounds of the positions rendered with it.
+RENDERER = "surfels"
 #: Body particles allowed inside the colliders' hull (a fraction) before it is an error.
 MAX_OVERLAP = 0.02
 
@@ -146,11 +149,13 @@ def reconstruct_body(
         spec: the scene skeleton (its ``domain`` bounds the hull, its ``dx`` sets the lattice).
         ppc: particles per cell (lattice spacing ``dx / ppc^(1/3)``).
         tolerance: k of the visual hull (a voxel is kept when ≥ V − k views see it inside).
-        voxel: hull voxel edge, m (default ``dx / 2``).
+        voxel: hull voxel edge, m (default the particle spacing: finer voxels resolve the
+            few-view hull's excess corners, which then add particles; measured on the tiny
+            test dataset: first-frame IoU 0.94–0.97 at spacing/2, 0.96–1.0 at spacing).
 
     Returns:
         ``(points (N, 3), hull, iou (V,))``; IoU between each view's first-frame mask and the
-        volume renderer's silhouette of the points.
+        silhouette of the points (:data:`RENDERER`).
 
     Raises:
         ObservationError: an empty hull (the views' first masks share no point in the domain).
@@ -158,17 +163,17 @@ def reconstruct_body(
     from ..render import render_views
 
     obs = dataset.observation
-    dx = float(spec["dx"])
-    voxel = 0.5 * dx if voxel is None else float(voxel)
+    spacing = float(spec["dx"]) / ppc ** (1.0 / 3.0)
+    voxel = spacing if voxel is None else float(voxel)
     hull = visual_hull(obs.masks[:, 0], obs.intrinsics, obs.cam_to_world, spec["domain"]["lo"], spec["domain"]["hi"],
                        voxel, tolerance=tolerance)
-    points = hull_particles(hull, dx / ppc ** (1.0 / 3.0))
+    points = hull_particles(hull, spacing)
     if len(points) == 0:
         raise ObservationError(
             f"{dataset.folder}: the first frame's visual hull is empty: no point of the domain "
             f"{spec['domain']} is inside {obs.masks.shape[0] - tolerance} of the views' masks (check the cameras and masks)"
         )
-    rendered = render_views(points[None].astype(np.float32), _cameras(obs), "volume", spacing=dx / ppc ** (1.0 / 3.0))
+    rendered = render_views(points[None].astype(np.float32), _cameras(obs), RENDERER, spacing=spacing)
     return points, hull, silhouette_iou(rendered["masks"][:, 0], obs.masks[:, 0])
 
 
@@ -323,7 +328,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
 
 def simulated_masks(scene, params, observation, substeps: int | None = None) -> np.ndarray:
     """Silhouettes ``(V, T, H, W)`` uint8 of a rollout with ``params`` at the observed times
-    (volume renderer, the observation's cameras; ``substeps`` per frame, default the scene's)."""
+    (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's)."""
     from ..render import render_views
     from ..step import run_frames
 
@@ -331,7 +336,7 @@ def simulated_masks(scene, params, observation, substeps: int | None = None) -> 
     traj = run_frames(model, params)
     idx = np.round(np.asarray(observation.times) / model.frame_dt).astype(int)
     x = np.asarray(traj.x)[idx]
-    return render_views(x, _cameras(observation), "volume", spacing=float(np.cbrt(np.asarray(model.bodies[0].vol0)[0])))["masks"]
+    return render_views(x, _cameras(observation), RENDERER, spacing=float(np.cbrt(np.asarray(model.bodies[0].vol0)[0])))["masks"]
 
 
 def overlay_frames(observed: np.ndarray, simulated: np.ndarray, views: int = 4) -> np.ndarray:
