@@ -157,7 +157,8 @@ def fit_surfels(
     @jax.jit
     def update(theta, state):
         value, g = jax.value_and_grad(loss)(theta)
-        upd, state = opt.update(g, state)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
+            upd, state = opt.update(g, state)
         return optax.apply_updates(theta, upd), state, value
 
     for i in range(steps):
