@@ -6,6 +6,7 @@ The public API is re-exported here; private module names may change.
 from . import constitutive as constitutive
 from . import extensions as extensions
 from . import losses as losses
+from . import reconstruct as reconstruct
 from . import render as render
 from .colliders import Box as Box
 from .colliders import Collider as Collider
@@ -25,6 +26,7 @@ from .constitutive import svd as svd
 from .cpic import CollisionField as CollisionField
 from .cpic import build_collision_field as build_collision_field
 from .datasets import load_pacnerf as load_pacnerf
+from .datasets import save_pacnerf as save_pacnerf
 from .discover import discover as discover
 from .errors import JaxmpmError as JaxmpmError
 from .errors import ObservationError as ObservationError
@@ -40,6 +42,10 @@ from .model import initial_state as initial_state
 from .observe import Observation as Observation
 from .observe import load_observation as load_observation
 from .observe import save_observation as save_observation
+from .reconstruct import identify as identify
+from .reconstruct import read_dataset as read_dataset
+from .reconstruct import reconstruct as reconstruct_scene
+from .reconstruct import visual_hull as visual_hull
 from .scene import Scene as Scene
 from .scene import load_scene as load_scene
 from .state import Grid as Grid
