@@ -6,7 +6,7 @@ import shutil
 
 import numpy as np
 import pytest
-from recon_data import BOX_HI, BOX_LO, box_masks, make_dataset, sphere_masks, tiny_cameras, tiny_spec
+from recon_data import BOX_HI, BOX_LO, box_masks, make_dataset, sphere_masks, tiny_spec
 
 from jaxmpm.cli import main
 from jaxmpm.errors import ObservationError
@@ -110,6 +110,10 @@ def _broken(folder, tmp_path, how):
         import imageio.v3 as iio
 
         iio.imwrite(bad / "data" / "c_1.png", np.zeros((10, 12), np.uint8))
+    elif how == "matte_size":
+        import imageio.v3 as iio
+
+        iio.imwrite(bad / "data" / "a_3_2.png", np.zeros((10, 12, 4), np.uint8))
     elif how == "empty_hull":
         (bad / "scene_hint.toml").write_text("domain = { lo = [2.0, 2.0, 2.0], hi = [3.0, 3.0, 3.0] }\ndx = 0.05\n")
     elif how == "overlap":
@@ -126,6 +130,7 @@ def _broken(folder, tmp_path, how):
     ("camera_count", "inconsistent camera counts"),
     ("missing_image", "view 2"),
     ("mask_size", "view 1: collider mask"),
+    ("matte_size", "view 3: mask"),
     ("empty_hull", "visual hull is empty"),
     ("overlap", "overlap the body"),
     ("frame_rate", "does not match"),

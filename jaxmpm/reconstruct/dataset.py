@@ -7,7 +7,6 @@ The layout is documented in docs/file_formats.md ("identify datasets").
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,8 +117,9 @@ def _check_entries(folder: Path) -> tuple[list[dict], int, int]:
             raise ObservationError(f"view {e['view']}: {p} is {hw[1]}x{hw[0]} px, the first image is {size[1]}x{size[0]}")
         for prefix in ("a", "m"):
             q = p.with_name(prefix + p.name[1:])
-            if q.is_file() and _read(q).shape[:2] != size:
-                raise ObservationError(f"view {e['view']}: mask {q} is {_read(q).shape[1]}x{_read(q).shape[0]} px, the images are {size[1]}x{size[0]}")
+            qhw = _read(q).shape[:2] if q.is_file() else size
+            if qhw != size:
+                raise ObservationError(f"view {e['view']}: mask {q} is {qhw[1]}x{qhw[0]} px, the images are {size[1]}x{size[0]}")
     return entries, size[0], size[1]
 
 
