@@ -195,3 +195,29 @@ def test_identify_cli_end_to_end(dataset, tmp_path):
     assert "mu" in fit["params"] and "velocity" in fit["params"]
     assert (out / "overlay.mp4").stat().st_size > 0
     assert "Silhouette IoU over time" in (out / "report.md").read_text()
+
+
+def test_without_a_hint_the_defaults_hold_the_body(dataset, tmp_path):
+    folder = tmp_path / "nohint"
+    shutil.copytree(dataset[0], folder)
+    (folder / "scene_hint.toml").unlink()
+    ds = read_dataset(folder)
+    spec = scene_skeleton(ds, "sand")
+    lo, hi = np.array(spec["domain"]["lo"]), np.array(spec["domain"]["hi"])
+    assert spec["dx"] == pytest.approx(np.max(hi - lo) / 32)
+    assert spec["frames"] == 6 and spec["gravity"] == [0.0, -9.8, 0.0] and spec["colliders"] == []
+    x0 = dataset[1][0]
+    assert np.all(x0 > lo) and np.all(x0 < hi)  # the cameras' common view holds the body
+    points, _, iou = reconstruct_body(ds, spec)
+    assert np.all(points > lo) and np.all(points < hi) and iou.min() > 0.8
+
+
+def test_hint_material_is_the_starting_guess(dataset, tmp_path):
+    from jaxmpm.reconstruct.pipeline import body_material
+
+    hint = {"bodies": [{"material": {"model": "newtonian", "mu": 50.0}, "ppc": 27}]}
+    ds = read_dataset(dataset[0], hint)
+    table, ppc, _ = body_material(ds, "newtonian")
+    assert table["mu"] == 50.0 and table["kappa"] == 1e4 and ppc == 27
+    with pytest.raises(ObservationError, match="--material is 'sand'"):
+        body_material(ds, "sand")
