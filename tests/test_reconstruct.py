@@ -221,3 +221,16 @@ def test_hint_material_is_the_starting_guess(dataset, tmp_path):
     assert table["mu"] == 50.0 and table["kappa"] == 1e4 and ppc == 27
     with pytest.raises(ObservationError, match="--material is 'sand'"):
         body_material(ds, "sand")
+
+
+def test_a_failing_fit_leaves_no_output(dataset, tmp_path, monkeypatch):
+    import jaxmpm.reconstruct.pipeline as pipeline
+    from jaxmpm.errors import SimulationError
+
+    def boom(*args, **kwargs):
+        raise SimulationError("unstable")
+
+    monkeypatch.setattr(pipeline, "identify_material", boom)
+    with pytest.raises(SimulationError):
+        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2)
+    assert list(tmp_path.iterdir()) == []  # neither the output nor the staging folder

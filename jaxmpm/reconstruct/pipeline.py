@@ -3,9 +3,9 @@
 Stages (each callable alone): :func:`jaxmpm.reconstruct.read_dataset` →
 :func:`scene_skeleton` (the hint plus stated defaults) → :func:`reconstruct_body` →
 :func:`reconstruct_colliders` → :func:`write_scene` → :func:`identify_material` (the one
-call of :func:`jaxmpm.fit`) → :func:`evaluate` (IoU over time) → :func:`write_report`.
-:func:`identify` runs them all. Nothing is written until the dataset has been read, checked
-and reconstructed.
+call of :func:`jaxmpm.fit`) → :func:`simulated_masks` (IoU over time) → :func:`write_report`.
+:func:`identify` runs them all; it writes into a staging folder beside the output folder and
+moves the files in only when every stage has succeeded.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ import copy
 import json
 import math
 import os
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -442,19 +444,27 @@ def identify(
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
                         progress=progress)
     out = Path(out)
-    say("write scene")
-    scene_path = write_scene(recon, out)
-    scene = load_scene(scene_path)
-    say("fit")
-    result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
-                               progress=progress)
-    (out / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
-    say("evaluate")
-    sim = simulated_masks(scene, result.params, dataset.observation, result.substeps)
-    iou = silhouette_iou(sim, dataset.observation.masks)
-    write_report(out / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material)
-    files = {"scene": scene_path, "fit": out / "fit.json", "report": out / "report.md"}
-    if video:
-        files["video"] = write_video(out / "overlay.mp4", overlay_frames(dataset.observation.masks, sim),
-                                     fps=max(1, round(1.0 / dataset.frame_dt)))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:  # everything is written to a staging folder and moved into `out` at the end
+        say("write scene")
+        scene = load_scene(write_scene(recon, staging))
+        say("fit")
+        result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
+                                   progress=progress)
+        (staging / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+        say("evaluate")
+        sim = simulated_masks(scene, result.params, dataset.observation, result.substeps)
+        iou = silhouette_iou(sim, dataset.observation.masks)
+        write_report(staging / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material)
+        if video:
+            write_video(staging / "overlay.mp4", overlay_frames(dataset.observation.masks, sim),
+                        fps=max(1, round(1.0 / dataset.frame_dt)))
+        out.mkdir(exist_ok=True)
+        files = {}
+        for f in sorted(staging.iterdir()):
+            os.replace(f, out / f.name)
+            files[f.stem] = out / f.name
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files)
