@@ -7,6 +7,7 @@ from . import constitutive as constitutive
 from . import extensions as extensions
 from . import identify as identify
 from . import parameters as parameters
+from . import reconstruct as reconstruct
 from . import render as render
 from .colliders import Box as Box
 from .colliders import Collider as Collider
@@ -26,6 +27,7 @@ from .constitutive import svd as svd
 from .cpic import CollisionField as CollisionField
 from .cpic import build_collision_field as build_collision_field
 from .datasets import load_pacnerf as load_pacnerf
+from .datasets import save_pacnerf as save_pacnerf
 from .discover import discover as discover
 from .errors import JaxmpmError as JaxmpmError
 from .errors import ObservationError as ObservationError
@@ -44,6 +46,10 @@ from .parameters import Parameter as Parameter
 from .observe import Observation as Observation
 from .observe import load_observation as load_observation
 from .observe import save_observation as save_observation
+from .reconstruct import identify as identify_dataset
+from .reconstruct import read_dataset as read_dataset
+from .reconstruct import reconstruct as reconstruct_scene
+from .reconstruct import visual_hull as visual_hull
 from .scene import Scene as Scene
 from .scene import load_scene as load_scene
 from .state import Grid as Grid

@@ -228,6 +228,16 @@ def cmd_discover(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- identify
+
+
+def cmd_identify(args) -> int:
+    """``jaxmpm identify DATASET_DIR --material MODEL``: reconstruct, fit, report (jaxmpm.reconstruct)."""
+    from .reconstruct.cli import run_identify
+
+    return run_identify(args)
+
+
 # --------------------------------------------------------------------------- demo, bench
 
 
@@ -316,6 +326,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--float64", action="store_true", help="run in float64")
     p.set_defaults(func=cmd_discover)
+
+    from .reconstruct.cli import add_identify_parser
+
+    add_identify_parser(sub, cmd_identify)
 
     p = sub.add_parser("bench", help="performance benchmarks")
     p.add_argument("what", choices=("step", "scaling", "memory", "sysid"),

@@ -28,7 +28,7 @@ import numpy as np
 from .errors import ObservationError
 from .observe import Observation
 
-__all__ = ["load_pacnerf", "MASK_SOURCES"]
+__all__ = ["load_pacnerf", "save_pacnerf", "read_mask_image", "MASK_SOURCES"]
 
 MASK_SOURCES = ("auto", "a", "alpha", "m", "background")
 
@@ -243,3 +243,63 @@ def _frame(folder: Path, rel: str, background_rel: str | None, mask_source: str,
     if rgb.shape[:2] != alpha.shape:
         raise ObservationError(f"{r_path}: the mask and the image differ in size ({alpha.shape} vs {rgb.shape[:2]})")
     return rgb, alpha, src
+
+
+def read_mask_image(path: Path) -> np.ndarray:
+    """A mask image: the alpha channel when it has one that is not all opaque, else grey > 127.
+
+    Returns ``(H, W)`` bool.
+    """
+    img = _read(path)
+    if img.shape[-1] == 4 and img[..., 3].min() < 255:
+        return img[..., 3] > 127
+    return img[..., :3].mean(axis=-1) > 127
+
+
+def save_pacnerf(
+    folder: str | os.PathLike,
+    observation: Observation,
+    *,
+    background: np.ndarray | None = None,
+    collider_masks: np.ndarray | None = None,
+) -> Path:
+    """Write an Observation with masks and images as a PAC-NeRF scene folder.
+
+    Writes ``all_data.json`` (OpenGL axes, as PAC-NeRF), ``data/r_{view}_{frame}.png`` as
+    RGBA (alpha = the mask), the frame ``-1`` background plate when ``background`` is given
+    and ``data/c_{view}.png`` collider masks when ``collider_masks`` is given.
+
+    Arguments:
+        folder: output folder (created).
+        observation: with ``masks (V, T, H, W)``, ``images``, ``intrinsics``, ``cam_to_world``.
+        background: ``(V, H, W, 3)`` uint8 plates (frame −1).
+        collider_masks: ``(V, H, W)`` bool masks of the colliders on the plates.
+
+    Returns:
+        The folder.
+    """
+    import imageio.v3 as iio
+
+    from .render import Camera, save_cameras_json
+
+    obs = observation
+    if obs.masks is None or obs.images is None:
+        raise ObservationError("save_pacnerf needs an observation with masks and images")
+    folder = Path(folder)
+    (folder / "data").mkdir(parents=True, exist_ok=True)
+    V, T, H, W = obs.masks.shape
+    cams = Camera(np.asarray(obs.intrinsics, np.float32), np.asarray(obs.cam_to_world, np.float32), W, H)
+    frames = list(range(T))
+    times = [float(t) for t in obs.times]
+    if background is not None:
+        frames, times = [-1] + frames, [0.0] + times
+    save_cameras_json(folder / "all_data.json", cams, times, frames=frames)
+    for v in range(V):
+        for t in range(T):
+            rgba = np.concatenate([obs.images[v, t], obs.masks[v, t][..., None]], axis=-1)
+            iio.imwrite(folder / "data" / f"r_{v}_{t}.png", rgba.astype(np.uint8))
+        if background is not None:
+            iio.imwrite(folder / "data" / f"r_{v}_-1.png", np.asarray(background[v], np.uint8))
+        if collider_masks is not None:
+            iio.imwrite(folder / "data" / f"c_{v}.png", np.where(collider_masks[v], 255, 0).astype(np.uint8))
+    return folder

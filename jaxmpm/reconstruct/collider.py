@@ -1,0 +1,176 @@
+"""Colliders from views: a triangle mesh of a visual hull (marching cubes) and 2D Gaussian
+surfels fitted to the collider's silhouettes with jaxmpm's surfel renderer.
+
+The surfels are written as a ``disks`` collider file (``.npz``, :func:`jaxmpm.colliders.load_disks`
+keys), which CPIC uses as-is.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..errors import ObservationError
+from .hull import Hull
+
+
+def hull_mesh(hull: Hull):
+    """A closed triangle mesh of the hull's boundary (scikit-image's marching cubes).
+
+    Arguments:
+        hull: a :class:`~jaxmpm.reconstruct.Hull` with at least one occupied voxel.
+
+    Returns:
+        A ``trimesh.Trimesh`` in world coordinates (m), faces oriented outwards.
+    """
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    if not hull.occupied.any():
+        raise ObservationError("the collider's visual hull is empty: no voxel is inside every collider mask")
+    padded = np.pad(hull.occupied.astype(np.float32), 1)
+    verts, faces, _, _ = marching_cubes(padded, level=0.5, spacing=(hull.voxel,) * 3)
+    verts = verts + hull.lo - 0.5 * hull.voxel  # padding shifts by one voxel; centres sit at +½
+    mesh = trimesh.Trimesh(verts, faces, process=True)
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Symmetric Chamfer distance: the mean of the two mean nearest-neighbour distances, m.
+
+    Arguments:
+        a, b: ``(N, 3)`` and ``(M, 3)`` point sets (e.g. surface samples).
+    """
+    from scipy.spatial import cKDTree
+
+    da, _ = cKDTree(b).query(a)
+    db, _ = cKDTree(a).query(b)
+    return 0.5 * (float(np.mean(da)) + float(np.mean(db)))
+
+
+@dataclass
+class Surfels:
+    """Fitted 2D Gaussian surfels (the ``disks`` collider file's content).
+
+    Attributes:
+        centers: ``(K, 3)`` m.
+        normals: ``(K, 3)`` unit outward normals.
+        tangents: ``(K, 3)`` unit first tangent axes.
+        scales: ``(K, 2)`` standard deviations along the tangent axes, m.
+        opacity: ``(K,)`` in [0, 1].
+        iou: ``(V,)`` IoU of the surfels' silhouettes with the collider masks.
+    """
+
+    centers: np.ndarray
+    normals: np.ndarray
+    tangents: np.ndarray
+    scales: np.ndarray
+    opacity: np.ndarray
+    iou: np.ndarray
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the ``.npz`` a ``disks`` collider reads (keys of :func:`jaxmpm.colliders.load_disks`)."""
+        np.savez(path, centers=self.centers, normals=self.normals, tangents=self.tangents,
+                 scales=self.scales, opacity=self.opacity)
+
+
+def fit_surfels(
+    mesh,
+    masks: np.ndarray,
+    intrinsics: np.ndarray,
+    cam_to_world: np.ndarray,
+    *,
+    count: int = 600,
+    steps: int = 80,
+    learning_rate: float = 0.05,
+    min_opacity: float = 0.2,
+    seed: int = 0,
+    progress: Callable[[int, float], None] | None = None,
+) -> Surfels:
+    """Fit 2D Gaussian surfels to a collider's silhouettes, starting from its hull's mesh.
+
+    ``count`` surfels are placed evenly on ``mesh`` with its outward normals and a scale of
+    half the mean spacing; Adam then fits their positions, normals, two scales and opacities
+    so that the renderer's soft silhouettes (:meth:`jaxmpm.render.SurfelRenderer.silhouette`)
+    match ``masks`` (mean squared error over all pixels of all views). Surfels whose opacity
+    ends below ``min_opacity`` are pruned.
+
+    Arguments:
+        mesh: the collider's visual-hull mesh (``trimesh.Trimesh``, m).
+        masks: ``(V, H, W)`` bool collider masks.
+        intrinsics, cam_to_world: ``(V, 3, 3)``, ``(V, 4, 4)`` cameras (OpenCV axes).
+        count: surfels placed on the mesh.
+        steps, learning_rate: Adam iterations and step size (in units of the initial scale
+            for positions, per unit for the normals and log-scales and opacity logits).
+        min_opacity: pruning threshold.
+        seed: sampling seed.
+        progress: ``progress(step, loss)`` after each Adam step.
+
+    Returns:
+        :class:`Surfels` (float64 NumPy arrays).
+    """
+    import jax
+    import jax.numpy as jnp
+    import optax
+    import trimesh
+
+    from ..render import Camera, SurfelRenderer
+    from .hull import silhouette_iou
+
+    masks = np.asarray(masks) > 0
+    V, H, W = masks.shape
+    pts, face = trimesh.sample.sample_surface_even(mesh, count, seed=seed)
+    normals0 = np.asarray(mesh.face_normals[face], float)
+    spacing = float(np.sqrt(mesh.area / max(len(pts), 1)))
+    scale0 = 0.5 * spacing
+    cams = [Camera(np.asarray(intrinsics[v], np.float32), np.asarray(cam_to_world[v], np.float32), W, H) for v in range(V)]
+    renderer = SurfelRenderer(scale=scale0)
+    target = jnp.asarray(masks, jnp.float32)
+    x0 = jnp.asarray(pts, jnp.float32)
+
+    def unpack(theta):
+        x = x0 + scale0 * theta["dx"]
+        n = theta["n"] / jnp.sqrt(jnp.sum(theta["n"] ** 2, axis=-1, keepdims=True) + 1e-12)
+        return x, n, scale0 * jnp.exp(theta["log_s"]), jax.nn.sigmoid(theta["logit"])
+
+    def silhouettes(theta):
+        x, n, s, o = unpack(theta)
+        return jnp.stack([renderer.silhouette(x, c, normals=n, scales=s, opacities=o) for c in cams])
+
+    def loss(theta):
+        return jnp.mean((silhouettes(theta) - target) ** 2)
+
+    theta = {
+        "dx": jnp.zeros_like(x0),
+        "n": jnp.asarray(normals0, jnp.float32),
+        "log_s": jnp.zeros((len(pts), 2), jnp.float32),
+        "logit": jnp.full((len(pts),), 2.0, jnp.float32),
+    }
+    opt = optax.adam(learning_rate)
+    state = opt.init(theta)
+
+    @jax.jit
+    def update(theta, state):
+        value, g = jax.value_and_grad(loss)(theta)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
+            upd, state = opt.update(g, state)
+        return optax.apply_updates(theta, upd), state, value
+
+    for i in range(steps):
+        theta, state, value = update(theta, state)
+        if progress is not None:
+            progress(i, float(value))
+    x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
+    iou = silhouette_iou(np.asarray(jax.jit(silhouettes)(theta)) > 0.5, masks)
+    keep = o >= min_opacity
+    if not keep.any():
+        raise ObservationError("every fitted collider surfel became transparent: the collider masks hold no collider")
+    axes_u, _ = renderer.surfel_axes(jnp.asarray(x[keep], jnp.float32), cams[0], normals=jnp.asarray(n[keep], jnp.float32),
+                                     scales=jnp.ones((int(keep.sum()),), jnp.float32))
+    return Surfels(centers=x[keep], normals=n[keep], tangents=np.asarray(axes_u, float), scales=s[keep],
+                   opacity=o[keep], iou=iou)

@@ -1,0 +1,474 @@
+"""``identify``: from a PAC-NeRF-layout folder to a scene, fitted parameters and a report.
+
+Stages (each callable alone): :func:`jaxmpm.reconstruct.read_dataset` →
+:func:`scene_skeleton` (the hint plus stated defaults) → :func:`reconstruct_body` →
+:func:`reconstruct_colliders` → :func:`write_scene` → :func:`identify_material` (the one
+call of :func:`jaxmpm.fit`) → :func:`simulated_masks` (IoU over time) → :func:`write_report`.
+:func:`identify` runs them all; it writes into a staging folder beside the output folder and
+moves the files in only when every stage has succeeded.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import ObservationError
+from .collider import Surfels, fit_surfels, hull_mesh
+from .dataset import Dataset, read_dataset
+from .hull import Hull, hull_particles, silhouette_iou, visual_hull
+
+#: Defaults for what a hint does not give (docs/identify.md states them).
+DEFAULT_PPC = 8
+DEFAULT_CELLS = 32  # dx = longest domain side / DEFAULT_CELLS
+DEFAULT_GRAVITY = (0.0, -9.8, 0.0)
+DEFAULT_DENSITY = 1000.0
+#: Default substeps: dt = dx / SUBSTEP_SPEED (the speed of sound of the default guesses,
+#: about 10 m/s, with a margin of 5).
+SUBSTEP_SPEED = 50.0
+#: Renderer of the re-projected silhouettes (IoU, overlay video): surfels need no grid, so a
+#: body's silhouette does not depend on the bounds of the positions rendered with it.
+RENDERER = "surfels"
+#: Body particles allowed inside the colliders' hull (a fraction) before it is an error.
+MAX_OVERLAP = 0.02
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` recovers from the views.
+
+    Attributes:
+        spec: the scene spec (DESIGN §5.1) with the body as ``points`` (path ``body.npy``)
+            and the colliders (hint planes, then the reconstructed one as ``collider_disks.npz``
+            or ``collider.obj``).
+        points: ``(N, 3)`` body particles, m.
+        body_hull: the body's visual hull.
+        body_iou: ``(V,)`` first-frame IoU between observed and re-rendered silhouettes.
+        collider_mesh: marching-cubes mesh of the collider hull (``trimesh.Trimesh``) or None.
+        surfels: fitted collider surfels or None.
+        collider: which reconstructed collider the scene uses: ``"disks"``, ``"mesh"`` or None.
+    """
+
+    spec: dict
+    points: np.ndarray
+    body_hull: Hull
+    body_iou: np.ndarray
+    collider_mesh: object | None = None
+    surfels: Surfels | None = None
+    collider: str | None = None
+
+
+def _optical_center(K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point nearest to all optical axes and the half-side of a cube around it that
+    every camera sees whole, m."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for P in c2w:
+        d = P[:3, 2] / np.linalg.norm(P[:3, 2])
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        b += M @ P[:3, 3]
+    center = np.linalg.solve(A, b)
+    half = min(
+        float((center - P[:3, 3]) @ P[:3, 2]) * min(k[0, 2] / k[0, 0], k[1, 2] / k[1, 1]) / math.sqrt(3.0)
+        for k, P in zip(K, c2w)
+    )
+    return center, half
+
+
+def scene_skeleton(dataset: Dataset, material: str) -> dict:
+    """The scene spec without bodies: the hint's keys, and stated defaults for the rest.
+
+    Defaults: ``domain`` the cube around the point nearest to all optical axes that every
+    camera sees whole (extended down to a hint floor); ``dx`` = its longest side /
+    :data:`DEFAULT_CELLS`; ``gravity`` (0, −9.8, 0); ``frame_dt`` from the ``time`` values;
+    ``frames`` to cover the last observed time; ``substeps`` so that dt = dx / 50 m/s;
+    ``collision = "cpic"``; the material's starting guess PAC-NeRF's (each parameter's declared ``guess``),
+    density 1000 kg/m³, ``ppc`` 8.
+    """
+    from ..constitutive import MATERIALS
+
+    if material not in MATERIALS:
+        raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
+    hint = copy.deepcopy(dataset.hint)
+    obs = dataset.observation
+    spec: dict = {"dim": 3}
+    if "domain" in hint:
+        lo, hi = np.asarray(hint["domain"]["lo"], float), np.asarray(hint["domain"]["hi"], float)
+    else:
+        c, half = _optical_center(np.asarray(obs.intrinsics, float), np.asarray(obs.cam_to_world, float))
+        lo, hi = c - half, c + half
+        for plane in hint.get("colliders", []):
+            n = np.asarray(plane["normal"], float)
+            axis = int(np.argmax(np.abs(n)))
+            if np.allclose(np.abs(n) / np.linalg.norm(n), np.eye(3)[axis]):
+                p = float(plane["point"][axis])
+                lo[axis] = min(lo[axis], p) if n[axis] > 0 else lo[axis]
+                hi[axis] = max(hi[axis], p) if n[axis] < 0 else hi[axis]
+    dx = float(hint.get("dx", float(np.max(hi - lo)) / DEFAULT_CELLS))
+    spec["dx"] = dx
+    spec["domain"] = {"lo": [float(v) for v in lo], "hi": [float(v) for v in hi]}
+    spec["gravity"] = [float(g) for g in hint.get("gravity", DEFAULT_GRAVITY)]
+    spec["frame_dt"] = dataset.frame_dt
+    spec["frames"] = int(round(float(obs.times[-1]) / dataset.frame_dt)) + 1
+    if "substeps" in hint or "dt" in hint:
+        spec.update({k: hint[k] for k in ("substeps", "dt") if k in hint})
+    else:
+        spec["substeps"] = max(1, math.ceil(dataset.frame_dt * SUBSTEP_SPEED / dx))
+    spec["collision"] = hint.get("collision", "cpic")
+    spec["colliders"] = [dict(c, name=c.get("name", f"plane{k}")) for k, c in enumerate(hint.get("colliders", []))]
+    return spec
+
+
+def body_material(dataset: Dataset, material: str) -> tuple[dict, int, str]:
+    """``(material table, ppc, name)`` of the body: the hint's, else the stated defaults."""
+    from ..constitutive import MATERIALS
+
+    body = (dataset.hint.get("bodies") or [{}])[0]
+    table = dict(body.get("material", {}))
+    if table.get("model", material) != material:
+        raise ObservationError(f"scene hint: bodies[0].material.model is {table['model']!r} but --material is {material!r}")
+    if material not in MATERIALS:
+        raise ObservationError(f"--material {material!r}: unknown model; expected one of {', '.join(sorted(MATERIALS))}")
+    cls = MATERIALS[material]
+    guess = {p.name: p.guess for p in cls.parameters if p.name in cls.required() and p.guess is not None}
+    table = {"model": material, "density": DEFAULT_DENSITY, **guess, **table}
+    return table, int(body.get("ppc", DEFAULT_PPC)), str(body.get("name", "body"))
+
+
+def reconstruct_body(
+    dataset: Dataset, spec: dict, *, ppc: int = DEFAULT_PPC, tolerance: int = 0, voxel: float | None = None
+) -> tuple[np.ndarray, Hull, np.ndarray]:
+    """Body particles from the first frame's masks, and the re-projection IoU.
+
+    Arguments:
+        dataset: the dataset.
+        spec: the scene skeleton (its ``domain`` bounds the hull, its ``dx`` sets the lattice).
+        ppc: particles per cell (lattice spacing ``dx / ppc^(1/3)``).
+        tolerance: k of the visual hull (a voxel is kept when ≥ V − k views see it inside).
+        voxel: hull voxel edge, m (default the particle spacing: finer voxels resolve the
+            few-view hull's excess corners, which then add particles; measured on the tiny
+            test dataset: first-frame IoU 0.94–0.97 at spacing/2, 0.96–1.0 at spacing).
+
+    Returns:
+        ``(points (N, 3), hull, iou (V,))``; IoU between each view's first-frame mask and the
+        silhouette of the points (:data:`RENDERER`).
+
+    Raises:
+        ObservationError: an empty hull (the views' first masks share no point in the domain).
+    """
+    from ..render import render_views
+
+    obs = dataset.observation
+    spacing = float(spec["dx"]) / ppc ** (1.0 / 3.0)
+    voxel = spacing if voxel is None else float(voxel)
+    hull = visual_hull(obs.masks[:, 0], obs.intrinsics, obs.cam_to_world, spec["domain"]["lo"], spec["domain"]["hi"],
+                       voxel, tolerance=tolerance)
+    points = hull_particles(hull, spacing)
+    if len(points) == 0:
+        raise ObservationError(
+            f"{dataset.folder}: the first frame's visual hull is empty: no point of the domain "
+            f"{spec['domain']} is inside {obs.masks.shape[0] - tolerance} of the views' masks (check the cameras and masks)"
+        )
+    rendered = render_views(points[None].astype(np.float32), _cameras(obs), RENDERER, spacing=spacing)
+    return points, hull, silhouette_iou(rendered["masks"][:, 0], obs.masks[:, 0])
+
+
+def _cameras(obs):
+    from ..render import Camera
+
+    V, _, H, W = obs.masks.shape
+    return Camera(np.asarray(obs.intrinsics, np.float32), np.asarray(obs.cam_to_world, np.float32), W, H)
+
+
+def reconstruct_colliders(
+    dataset: Dataset,
+    spec: dict,
+    points: np.ndarray,
+    *,
+    surfels: bool = True,
+    surfel_count: int = 600,
+    surfel_steps: int = 80,
+    voxel: float | None = None,
+    progress: Callable[[int, float], None] | None = None,
+):
+    """The collider from ``data/c_{view}.png``: hull → mesh, and (``surfels``) fitted surfels.
+
+    Returns ``(hull, mesh, surfels)`` (surfels None when not asked), or ``(None, None, None)``
+    when the dataset has no collider masks.
+
+    Raises:
+        ObservationError: an empty collider hull, or more than :data:`MAX_OVERLAP` of the
+            body's particles inside the collider's hull.
+    """
+    if dataset.collider_masks is None:
+        return None, None, None
+    obs = dataset.observation
+    voxel = 0.5 * float(spec["dx"]) if voxel is None else float(voxel)
+    hull = visual_hull(dataset.collider_masks, obs.intrinsics, obs.cam_to_world, spec["domain"]["lo"],
+                       spec["domain"]["hi"], voxel)
+    inside = hull.contains(points)
+    if inside.mean() > MAX_OVERLAP:
+        raise ObservationError(
+            f"{dataset.folder}: the colliders (data/c_*.png) overlap the body: {inside.mean():.0%} of the first "
+            "frame's body lies inside the collider hull"
+        )
+    mesh = hull_mesh(hull)
+    fitted = None
+    if surfels:
+        fitted = fit_surfels(mesh, dataset.collider_masks, obs.intrinsics, obs.cam_to_world, count=surfel_count,
+                             steps=surfel_steps, progress=progress)
+    return hull, mesh, fitted
+
+
+def reconstruct(
+    dataset: Dataset,
+    material: str,
+    *,
+    tolerance: int = 0,
+    collider: str = "disks",
+    surfel_count: int = 600,
+    surfel_steps: int = 80,
+    progress: Callable[[int, float], None] | None = None,
+) -> Reconstruction:
+    """Body and colliders from the views, as a scene spec (nothing is written).
+
+    Arguments:
+        dataset: from :func:`read_dataset`.
+        material: the material model name (``newtonian``, ``sand``, …).
+        tolerance: k of the body's visual hull.
+        collider: the reconstructed collider the scene uses: ``"disks"`` (fitted surfels,
+            AS-DiffMPM's) or ``"mesh"`` (the hull's marching-cubes mesh).
+        surfel_count, surfel_steps: surfels placed and Adam steps (``collider="disks"``).
+        progress: ``progress(step, loss)`` of the surfel fit.
+    """
+    if collider not in ("disks", "mesh"):
+        raise ObservationError(f"collider must be 'disks' or 'mesh', got {collider!r}")
+    spec = scene_skeleton(dataset, material)
+    table, ppc, name = body_material(dataset, material)
+    points, hull, iou = reconstruct_body(dataset, spec, ppc=ppc, tolerance=tolerance)
+    _check_floors(points, spec["colliders"], dataset.folder)
+    _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=collider == "disks",
+                                          surfel_count=surfel_count, surfel_steps=surfel_steps, progress=progress)
+    spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
+    used = None
+    if mesh is not None:
+        used = collider
+        entry = {"type": "disks", "path": "collider_disks.npz"} if collider == "disks" else {"type": "mesh", "path": "collider.obj"}
+        spec["colliders"].append({**entry, "name": "collider", "contact": "sticky"})
+    return Reconstruction(spec=spec, points=points, body_hull=hull, body_iou=iou, collider_mesh=mesh, surfels=surf,
+                          collider=used)
+
+
+def _check_floors(points: np.ndarray, planes: list[dict], folder) -> None:
+    for plane in planes:
+        n = np.asarray(plane["normal"], float)
+        below = (points - np.asarray(plane["point"], float)) @ n < 0
+        if below.mean() > MAX_OVERLAP:
+            raise ObservationError(f"{folder}: the hint's plane {plane['name']!r} cuts the body: {below.mean():.0%} of it lies behind the plane")
+
+
+# --------------------------------------------------------------------------- files
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+
+
+def to_toml(spec: dict) -> str:
+    """A scene spec as TOML text (top-level keys, then ``[[bodies]]`` and ``[[colliders]]`` tables)."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in spec.items() if k not in ("bodies", "colliders")]
+    for table in ("bodies", "colliders"):
+        for item in spec.get(table, []):
+            lines += ["", f"[[{table}]]"] + [f"{k} = {_toml_value(v)}" for k, v in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def write_scene(recon: Reconstruction, out: str | os.PathLike) -> Path:
+    """Write ``out/scene.toml``, ``out/body.npy`` and the collider files (``collider.obj``
+    always when there is a collider, ``collider_disks.npz`` when surfels were fitted)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "body.npy", recon.points)
+    if recon.collider_mesh is not None:
+        recon.collider_mesh.export(out / "collider.obj")
+    if recon.surfels is not None:
+        recon.surfels.save(out / "collider_disks.npz")
+    path = out / "scene.toml"
+    path.write_text(to_toml(recon.spec))
+    return path
+
+
+# --------------------------------------------------------------------------- fit and report
+
+
+def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
+                      progress=None, log=None):
+    """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
+    of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
+    pre-contact frames, then the material). Returns a :class:`jaxmpm.FitResult`."""
+    from ..fit import FitConfig, fit
+
+    config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer="volume")
+    return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
+
+
+def simulated_masks(scene, params, observation, substeps: int | None = None) -> np.ndarray:
+    """Silhouettes ``(V, T, H, W)`` uint8 of a rollout with ``params`` at the observed times
+    (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's)."""
+    from ..render import render_views
+    from ..step import run_frames
+
+    model = scene.model if substeps is None else scene.model.with_substeps(int(substeps))
+    traj = run_frames(model, params)
+    idx = np.round(np.asarray(observation.times) / model.frame_dt).astype(int)
+    x = np.asarray(traj.x)[idx]
+    return render_views(x, _cameras(observation), RENDERER, spacing=float(np.cbrt(np.asarray(model.bodies[0].vol0)[0])))["masks"]
+
+
+def overlay_frames(observed: np.ndarray, simulated: np.ndarray, views: int = 4) -> np.ndarray:
+    """Video frames ``(T, H', W', 3)`` uint8: observed silhouettes in red, simulated in green
+    (overlap yellow), the first ``views`` views side by side."""
+    from ..render import tile_views
+
+    V = min(views, observed.shape[0])
+    rgb = np.zeros(observed[:V].shape + (3,), np.uint8)
+    rgb[..., 0] = observed[:V]
+    rgb[..., 1] = simulated[:V]
+    return tile_views(rgb, cols=V)
+
+
+def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, times: np.ndarray, material: str) -> None:
+    """``report.md``: parameters ± σ, IoU over time per view, reconstruction quality."""
+    lines = [f"# identify: {material}", "", "## Parameters", "", "| parameter | estimate | σ |", "|---|---|---|"]
+    for name, value in result.values.items():
+        std = result.std.get(name)
+        lines.append(f"| {name} | {_fmt(value)} | {_fmt(std)} |")
+    lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
+              "## Silhouette IoU over time (observed vs simulated)", "",
+              "| t (s) | " + " | ".join(f"view {v}" for v in range(iou.shape[0])) + " |",
+              "|---" * (iou.shape[0] + 1) + "|"]
+    for t in range(iou.shape[1]):
+        lines.append(f"| {times[t]:.4g} | " + " | ".join(f"{iou[v, t]:.3f}" for v in range(iou.shape[0])) + " |")
+    lines += ["", "## Reconstruction", "",
+              f"- body: {len(recon.points)} particles, visual-hull volume {recon.body_hull.volume:.4g} m³",
+              "- first-frame IoU per view (observed vs re-rendered particles): "
+              + ", ".join(f"{x:.3f}" for x in recon.body_iou)]
+    if recon.collider_mesh is not None:
+        lines.append(f"- collider mesh: {len(recon.collider_mesh.faces)} faces, volume {recon.collider_mesh.volume:.4g} m³")
+    if recon.surfels is not None:
+        lines.append(f"- collider surfels: {len(recon.surfels.centers)} kept; IoU per view with the collider masks: "
+                     + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
+    lines.append(f"- the scene uses the reconstructed collider as: {recon.collider or 'none (no data/c_*.png)'}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    a = np.asarray(v, float)
+    return "[" + ", ".join(f"{x:.4g}" for x in a.ravel()) + "]" if a.ndim else f"{float(a):.4g}"
+
+
+@dataclass
+class IdentifyResult:
+    """Outcome of :func:`identify`: the fit, the reconstruction, IoU ``(V, T)`` and the files written."""
+
+    fit: object
+    reconstruction: Reconstruction
+    iou: np.ndarray
+    files: dict = field(default_factory=dict)
+
+
+def identify(
+    folder: str | os.PathLike,
+    material: str,
+    out: str | os.PathLike,
+    *,
+    params: list[str] | None = None,
+    hint=None,
+    tolerance: int = 0,
+    collider: str = "disks",
+    max_steps: int | None = None,
+    num_pixels: int = 256,
+    surfel_steps: int = 80,
+    video: bool = True,
+    stage: Callable[[str], None] | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> IdentifyResult:
+    """Reconstruct the scene from a PAC-NeRF-layout folder and identify the material.
+
+    Arguments:
+        folder: the dataset (see docs/file_formats.md).
+        material: material model name.
+        out: output folder: ``scene.toml`` (+ ``body.npy``, ``collider.obj``,
+            ``collider_disks.npz``), ``fit.json`` (as ``jaxmpm fit``), ``report.md``,
+            ``overlay.mp4``.
+        params: parameter names (default: the material's, plus ``velocity``).
+        hint: ``scene_hint.toml`` path or dict (default ``folder/scene_hint.toml``).
+        tolerance, collider, surfel_steps: see :func:`reconstruct`.
+        max_steps, num_pixels: of the fit.
+        video: write the overlay video.
+        stage: called with the name of each stage as it starts.
+        progress: ``progress(step, loss)`` within the surfel fit and the material fit.
+
+    Returns:
+        An :class:`IdentifyResult`.
+    """
+    from ..constitutive import MATERIALS
+    from ..render import write_video
+    from ..scene import load_scene
+
+    say = stage or (lambda s: None)
+    say("read")
+    dataset = read_dataset(folder, hint)
+    if material not in MATERIALS:
+        raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
+    names = list(params) if params else list(MATERIALS[material].required) + ["velocity"]
+    say("reconstruct")
+    recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
+                        progress=progress)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:  # everything is written to a staging folder and moved into `out` at the end
+        say("write scene")
+        scene = load_scene(write_scene(recon, staging))
+        say("fit")
+        result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
+                                   progress=progress)
+        (staging / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+        say("evaluate")
+        sim = simulated_masks(scene, result.params, dataset.observation, result.substeps)
+        iou = silhouette_iou(sim, dataset.observation.masks)
+        write_report(staging / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material)
+        if video:
+            write_video(staging / "overlay.mp4", overlay_frames(dataset.observation.masks, sim),
+                        fps=max(1, round(1.0 / dataset.frame_dt)))
+        out.mkdir(exist_ok=True)
+        files = {}
+        for f in sorted(staging.iterdir()):
+            os.replace(f, out / f.name)
+            files[f.stem] = out / f.name
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files)
