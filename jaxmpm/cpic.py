@@ -357,6 +357,7 @@ def _field_box(col: Box, grid: Grid, width: float, strict: bool):
     out_len = np.linalg.norm(qp, axis=-1)
     outside = out_len > 0
     sd = np.where(outside, out_len, np.max(q, axis=-1))
+    sd = np.where(np.abs(sd) <= 1e-9 * grid.dx, 0.0, sd)  # a node on a face is outside, whatever the round-off
     sgn = np.where(y >= 0, 1.0, -1.0)
     face = np.eye(y.shape[1])[np.argmax(q, axis=-1)]
     n_loc = np.where(outside[:, None], sgn * qp / np.where(outside, out_len, 1.0)[:, None], sgn * face)

@@ -174,7 +174,7 @@ def drop_collider(kind: str, dim: int, dx: float, top: float, x0: float, folder=
     if kind == "mesh":
         return {"type": "mesh", "name": name, "path": _write_square_mesh(folder, x0, top)}
     if kind == "disks":
-        return {"type": "disks", "name": name, "path": _write_disks(folder, x0, top, dim, dx)}
+        return {"type": "disks", "name": name, "path": _write_disks(folder, x0, top, dim, dx), "orient": "none"}
     raise ValueError(kind)
 
 
