@@ -3,6 +3,7 @@ CI-sized preset run end to end (one coarse 3D identification, ~70 s)."""
 
 import json
 
+import jax.numpy as jnp
 import pytest
 
 from jaxmpm.bench_sysid import (Case, errors, preset_cases, run_sysid_bench, scene_spec, sigma_check, summarise, targets,
@@ -30,6 +31,11 @@ def test_case_scenes_load_with_the_body_above_the_colliders(collider):
     scene = load_scene(scene_spec(case, preset, truth_values("newtonian", 0)))
     assert scene.model.collision == "cpic"
     assert len(scene.model.colliders) == {"three": 4}.get(collider, 2)
+    # every particle starts on the outer side of every collider, clear of its surface
+    x0 = jnp.concatenate([b.x0 for b in scene.model.bodies])
+    for c in scene.model.colliders:
+        sd, _ = c.signed_distance(x0, jnp.zeros((), x0.dtype))
+        assert float(jnp.min(sd)) > 0.5 * scene.model.grid.dx, (c.name, float(jnp.min(sd)))
 
 
 def test_truth_sets_are_deterministic_and_in_range():
