@@ -20,6 +20,7 @@ from .colliders import COLLIDER_TYPES, CONTACTS, load_mesh, place, resolve_path,
 from .constitutive import MATERIALS
 from .errors import SceneError
 from .model import COLLISION_MODES, Body, Collision, Model, Params
+from .parameters import DENSITY, FRICTION, RESTITUTION, Parameter
 from .state import Grid
 
 if sys.version_info >= (3, 11):
@@ -59,6 +60,15 @@ def _number(value, where: str, positive: bool = False, integer: bool = False) ->
         raise SceneError(f"{where} must be > 0, got {value!r}")
     if integer and int(value) != value:
         raise SceneError(f"{where} must be an integer, got {value!r}")
+    return value
+
+
+def _declared(parameter: Parameter, value, where: str) -> float:
+    """``value`` of a declared parameter, checked against its declared range (one line naming ``where``)."""
+    value = _number(value, f"{where}.{parameter.name}")
+    complaint = parameter.check(value, where)
+    if complaint is not None:
+        raise SceneError(complaint)
     return value
 
 
@@ -398,7 +408,7 @@ def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
         if isinstance(val, bool):
             raise SceneError(f"{where}.material: parameter {key!r} must be a number, got {val!r}")
     material_values = cls.validate(values, f"{where}.material")
-    density = _number(mspec.get("density", 1000.0), f"{where}.material.density", positive=True)
+    density = _declared(DENSITY, mspec.get("density", 1000.0), f"{where}.material")
     _check_representable({**material_values, "density": density}, dtype, f"{where}.material")
     velocity = vector(bspec.get("velocity", [0.0] * dim), dim, f"{where}.velocity")
 
@@ -446,12 +456,8 @@ def _build_collider(cspec, k, dim, base_dir, dtype):
     ctor, required, optional = COLLIDER_TYPES[kind]
     _check_keys(cspec, ("type",) + tuple(required), _COLLIDER_COMMON + tuple(optional), where)
     _choice(cspec.get("contact", "sticky"), CONTACTS, f"{where}.contact")
-    friction = _number(cspec.get("friction", 0.0), f"{where}.friction")
-    if friction < 0:
-        raise SceneError(f"{where}.friction must be >= 0, got {friction}")
-    restitution = _number(cspec.get("restitution", 0.0), f"{where}.restitution")
-    if not 0 <= restitution <= 1:
-        raise SceneError(f"{where}.restitution must be in [0, 1], got {restitution}")
+    friction = _declared(FRICTION, cspec.get("friction", 0.0), where)
+    restitution = _declared(RESTITUTION, cspec.get("restitution", 0.0), where)
     name = _name(cspec.get("name", f"{kind}{k}"), where)
     try:
         collider = ctor(cspec, name, dim, base_dir)

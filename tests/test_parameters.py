@@ -82,3 +82,21 @@ def test_parameter_names_are_checked_before_any_work():
     obs = jaxmpm.Observation(times=np.array([0.01]), positions=np.zeros((1, 3, 2)))
     with pytest.raises(JaxmpmError, match="max_steps"):
         jaxmpm.fit(scene.model, scene.params, obs, ["mu"], FitConfig(max_steps=0))
+
+
+@pytest.mark.parametrize("where, key, bad, words", [
+    ("material", "density", -1.0, "density = -1.0 is out of range (must be > 0)"),
+    ("collider", "friction", -0.1, "friction = -0.1 is out of range (must be >= 0)"),
+    ("collider", "restitution", 1.5, "restitution = 1.5 is out of range (must be in [0, 1])"),
+])
+def test_scene_files_check_body_and_collider_parameters_against_their_declarations(where, key, bad, words):
+    spec = {"dim": 2, "dx": 0.1, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 2, "frame_dt": 0.01, "substeps": 10,
+            "bodies": [{"shape": "box", "lo": [0.4, 0.4], "hi": [0.6, 0.6], "ppc": 4,
+                        "material": {"model": "newtonian", "mu": 1.0, "kappa": 1e3}}],
+            "colliders": [{"type": "plane", "point": [0, 0.1], "normal": [0, 1]}]}
+    jaxmpm.load_scene(spec)
+    target = spec["bodies"][0]["material"] if where == "material" else spec["colliders"][0]
+    target[key] = bad
+    with pytest.raises(SceneError) as err:
+        jaxmpm.load_scene(spec)
+    assert words in str(err.value)
