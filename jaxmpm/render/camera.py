@@ -227,11 +227,11 @@ class Camera(eqx.Module):
         self, uv: Float[Array, "... 2"], depth: Float[Array, "..."]
     ) -> Float[Array, "... 3"]:
         """Inverse of :meth:`project`: pixel coordinates and z-depth to world points."""
-        dirs = self._camera_dirs(uv)
+        dirs = self.camera_dirs(uv)
         pc = dirs * depth[..., None]
         return jnp.einsum("ij,...j->...i", self.rotation, pc) + self.position
 
-    def _camera_dirs(self, uv: Float[Array, "... 2"]) -> Float[Array, "... 3"]:
+    def camera_dirs(self, uv: Float[Array, "... 2"]) -> Float[Array, "... 3"]:
         """Camera-frame directions with z = 1 through pixel coordinates ``uv``."""
         K = self.K
         fx, fy, cx, cy, s = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
@@ -262,7 +262,7 @@ class Camera(eqx.Module):
             ``(origins, directions)``, each ``(P, 3)``; directions have unit length.
             The z-depth of ``o + t d`` is ``t * (d · camera_z)``.
         """
-        d_cam = self._camera_dirs(self.pixel_coordinates(pixels))
+        d_cam = self.camera_dirs(self.pixel_coordinates(pixels))
         d = jnp.einsum("ij,pj->pi", self.rotation, d_cam)
         d = d / jnp.sqrt(jnp.sum(d * d, axis=-1, keepdims=True))
         o = jnp.broadcast_to(self.position, d.shape)

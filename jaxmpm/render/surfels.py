@@ -71,11 +71,11 @@ from .camera import Camera
 from .volume import (
     AbstractRenderer,
     Rendered,
-    _finish,
-    _prepare,
     composite,
     estimate_spacing,
+    finish_image,
     map_pixel_chunks,
+    prepare_inputs,
 )
 
 _COS_MIN = 1e-4
@@ -323,7 +323,7 @@ class SurfelRenderer(AbstractRenderer):
         adj, det, thr, centre, footprint, zc = terms
         dtype = adj.dtype
         xy = camera.pixel_coordinates(pix)  # (C, 2)
-        r = camera._camera_dirs(xy)  # (C, 3), z = 1
+        r = camera.camera_dirs(xy)  # (C, 3), z = 1
         xt, yt = r[:, 0:1], r[:, 1:2]
         h0 = xt * adj[:, 0, 0] + yt * adj[:, 0, 1] + adj[:, 0, 2]
         h1 = xt * adj[:, 1, 0] + yt * adj[:, 1, 1] + adj[:, 1, 2]
@@ -386,7 +386,7 @@ class SurfelRenderer(AbstractRenderer):
         Returns:
             :class:`Rendered` with ``(H, W, ...)`` or ``(P, ...)`` arrays.
         """
-        camera, colors = _prepare(positions, camera, colors)
+        camera, colors = prepare_inputs(positions, camera, colors)
         dtype = positions.dtype
         au, av = self.surfel_axes(positions, camera, normals=normals, F=F, scales=scales)
         opac = self._opacities(positions, opacities)
@@ -404,7 +404,7 @@ class SurfelRenderer(AbstractRenderer):
             return composite(alpha, jnp.log1p(-alpha), z, lambda w: w @ colors, bg)
 
         out = self._pixel_loop(pair_fn, (terms, opac, colors), boxes, camera, pixels)
-        return _finish(out, camera, pixels)
+        return finish_image(out, camera, pixels)
 
     def silhouette(
         self,
@@ -421,7 +421,7 @@ class SurfelRenderer(AbstractRenderer):
 
         Returns ``(H, W)``, or ``(P,)`` for a pixel list. Equal to ``render(...).alpha``.
         """
-        _check = _prepare(positions, camera, None)
+        _check = prepare_inputs(positions, camera, None)
         camera = _check[0]
         au, av = self.surfel_axes(positions, camera, normals=normals, F=F, scales=scales)
         opac = self._opacities(positions, opacities)

@@ -119,7 +119,17 @@ def _check_positions(positions) -> None:
         raise ObservationError(f"particle positions must be floating point, got {positions.dtype}")
 
 
-def _prepare(positions, camera: Camera, colors):
+def prepare_inputs(positions, camera: Camera, colors):
+    """Check a renderer's inputs and bring them to ``positions``' dtype.
+
+    Arguments:
+        positions: particle positions ``(N, 3)``, metres.
+        camera: one camera (not a batch).
+        colors: RGB per particle ``(N, 3)`` in [0, 1], or None for :func:`default_colors`.
+
+    Returns:
+        ``(camera, colors)`` in ``positions.dtype``.
+    """
     _check_positions(positions)
     if camera.num_views is not None:
         raise ObservationError(
@@ -163,7 +173,9 @@ def map_pixel_chunks(fn, camera: Camera, pixels, chunk_size: int):
     return jax.tree_util.tree_map(lambda a: a.reshape((n_chunks * chunk,) + a.shape[2:])[:num], out)
 
 
-def _finish(out: Rendered, camera: Camera, pixels) -> Rendered:
+def finish_image(out: Rendered, camera: Camera, pixels) -> Rendered:
+    """A renderer's per-pixel output as images ``(H, W, ...)`` when every pixel was rendered
+    (``pixels`` None); as is, ``(P, ...)``, for a subset of pixels."""
     if pixels is not None:
         return out
     H, W = camera.height, camera.width
@@ -433,7 +445,7 @@ class VolumeRenderer(AbstractRenderer):
             :class:`Rendered` — ``rgb (H, W, 3)``, ``alpha (H, W)``, ``depth (H, W)``, or
             ``(P, ...)`` for a pixel list.
         """
-        camera, colors = _prepare(positions, camera, colors)
+        camera, colors = prepare_inputs(positions, camera, colors)
         grid = self.splat(positions, colors, volumes)
         out = map_pixel_chunks(lambda pix: self._march(grid, camera, pix), camera, pixels, self.chunk_size)
-        return _finish(out, camera, pixels)
+        return finish_image(out, camera, pixels)
