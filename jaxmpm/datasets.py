@@ -38,7 +38,7 @@ WHITE_LEVEL = 250
 BACKGROUND_THRESHOLD = 30
 
 
-def _read(path: Path) -> np.ndarray:
+def read_image(path: Path) -> np.ndarray:
     import imageio.v3 as iio
 
     try:
@@ -57,7 +57,7 @@ def _read(path: Path) -> np.ndarray:
     return img
 
 
-def _downscale(img: np.ndarray, factor: int) -> np.ndarray:
+def downscale_image(img: np.ndarray, factor: int) -> np.ndarray:
     """Block-average an ``(H, W[, C])`` image by an integer factor (cropping the remainder)."""
     if factor == 1:
         return img
@@ -134,7 +134,7 @@ def load_pacnerf(
     if first is None:
         raise ObservationError(f"{path}: expected a list of entries with a 'file_path'")
     # the images' real size decides the camera size (PAC-NeRF stores no width/height)
-    H0, W0 = _read(_find_image(folder, first["file_path"], "r")).shape[:2]
+    H0, W0 = read_image(_find_image(folder, first["file_path"], "r")).shape[:2]
     cams, entries = load_cameras_json(path, width=W0, height=H0)
 
     view_keys = sorted({e["view"] for e in entries})
@@ -165,7 +165,7 @@ def load_pacnerf(
         for ti, f in enumerate(all_frames):
             rel = by[(v, f)]
             rgb, alpha, _ = _frame(folder, rel, by.get((v, -1)), mask_source, images, threshold)
-            rgb, alpha = _downscale(rgb, downscale), _downscale(alpha, downscale)
+            rgb, alpha = downscale_image(rgb, downscale), downscale_image(alpha, downscale)
             if masks is None:
                 H, W = alpha.shape
                 masks = np.zeros((V, T, H, W), np.uint8)
@@ -206,20 +206,20 @@ def _frame(folder: Path, rel: str, background_rel: str | None, mask_source: str,
     order = {"auto": ("a", "alpha", "m", "background")}.get(mask_source, (mask_source,))
     for s in order:
         if s == "a" and a_path.is_file():
-            a = _read(a_path)
+            a = read_image(a_path)
             if a.shape[-1] == 4:
                 alpha, src = a[..., 3], "a"
         elif s == "alpha":
-            raw = _read(r_path) if raw is None else raw
+            raw = read_image(r_path) if raw is None else raw
             if raw.shape[-1] == 4 and raw[..., 3].min() < 255:
                 alpha, src = raw[..., 3], "alpha"
         elif s == "m" and m_path.is_file():
-            m = _read(m_path)[..., :3]
+            m = read_image(m_path)[..., :3]
             alpha, src = np.where(np.all(m >= WHITE_LEVEL, axis=-1), 0, 255).astype(np.uint8), "m"
         elif s == "background" and background_rel is not None:
             bg_path = _find_image(folder, background_rel, "r")
-            raw = _read(r_path) if raw is None else raw
-            bg = _read(bg_path)[..., :3]
+            raw = read_image(r_path) if raw is None else raw
+            bg = read_image(bg_path)[..., :3]
             if bg.shape != raw[..., :3].shape:
                 raise ObservationError(f"background plate {bg_path} has a different size from {r_path}")
             diff = np.max(np.abs(raw[..., :3].astype(int) - bg.astype(int)), axis=-1)
@@ -230,14 +230,14 @@ def _frame(folder: Path, rel: str, background_rel: str | None, mask_source: str,
         wanted = "any of a_ images, an alpha channel, m_ images or a background plate" if mask_source == "auto" else mask_source
         raise ObservationError(f"{r_path}: no mask source found ({wanted})")
     if images == "raw":
-        raw = _read(r_path) if raw is None else raw
+        raw = read_image(r_path) if raw is None else raw
         rgb = raw[..., :3]
     elif a_path.is_file():
-        rgb = _read(a_path)[..., :3]
+        rgb = read_image(a_path)[..., :3]
     elif m_path.is_file():
-        rgb = _read(m_path)[..., :3]
+        rgb = read_image(m_path)[..., :3]
     else:
-        raw = _read(r_path) if raw is None else raw
+        raw = read_image(r_path) if raw is None else raw
         w = (alpha >= threshold)[..., None]
         rgb = np.where(w, raw[..., :3], 255).astype(np.uint8)
     if rgb.shape[:2] != alpha.shape:
@@ -250,7 +250,7 @@ def read_mask_image(path: Path) -> np.ndarray:
 
     Returns ``(H, W)`` bool.
     """
-    img = _read(path)
+    img = read_image(path)
     if img.shape[-1] == 4 and img[..., 3].min() < 255:
         return img[..., 3] > 127
     return img[..., :3].mean(axis=-1) > 127

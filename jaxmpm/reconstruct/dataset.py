@@ -83,7 +83,7 @@ def read_hint(source: str | os.PathLike | dict | None) -> dict:
 def _check_entries(folder: Path) -> tuple[list[dict], int, int]:
     """Check the files named by ``all_data.json``: every view has the same frames, every
     file exists, all images have one size. Returns ``(entries, H, W)``."""
-    from ..datasets import _read
+    from ..datasets import read_image
     from ..render import load_cameras_json
 
     path = folder / "all_data.json"
@@ -111,20 +111,20 @@ def _check_entries(folder: Path) -> tuple[list[dict], int, int]:
             raise ObservationError(f"view {e['view']}: image {p} listed in all_data.json does not exist")
         if e["frame"] < 0:
             continue
-        hw = _read(p).shape[:2]
+        hw = read_image(p).shape[:2]
         size = hw if size is None else size
         if hw != size:
             raise ObservationError(f"view {e['view']}: {p} is {hw[1]}x{hw[0]} px, the first image is {size[1]}x{size[0]}")
         for prefix in ("a", "m"):
             q = p.with_name(prefix + p.name[1:])
-            qhw = _read(q).shape[:2] if q.is_file() else size
+            qhw = read_image(q).shape[:2] if q.is_file() else size
             if qhw != size:
                 raise ObservationError(f"view {e['view']}: mask {q} is {qhw[1]}x{qhw[0]} px, the images are {size[1]}x{size[0]}")
     return entries, size[0], size[1]
 
 
 def _collider_masks(folder: Path, V: int, H: int, W: int, downscale: int) -> np.ndarray | None:
-    from ..datasets import _downscale, read_mask_image
+    from ..datasets import downscale_image, read_mask_image
 
     paths = [folder / "data" / f"c_{v}.png" for v in range(V)]
     have = [p.is_file() for p in paths]
@@ -138,7 +138,7 @@ def _collider_masks(folder: Path, V: int, H: int, W: int, downscale: int) -> np.
         m = read_mask_image(p)
         if m.shape != (H, W):
             raise ObservationError(f"view {v}: collider mask {p} is {m.shape[1]}x{m.shape[0]} px, the images are {W}x{H}")
-        out.append(_downscale(np.where(m, 255, 0).astype(np.uint8), downscale) > 127)
+        out.append(downscale_image(np.where(m, 255, 0).astype(np.uint8), downscale) > 127)
     return np.stack(out)
 
 
