@@ -39,6 +39,8 @@ BACKGROUND_THRESHOLD = 30
 
 
 def read_image(path: Path) -> np.ndarray:
+    """The image at ``path`` as ``(H, W, 3 or 4)`` uint8 (grey is repeated to RGB; an unreadable file is an
+    ObservationError naming it)."""
     import imageio.v3 as iio
 
     try:
