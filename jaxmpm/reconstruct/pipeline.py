@@ -443,7 +443,7 @@ def identify(
     dataset = read_dataset(folder, hint)
     if material not in MATERIALS:
         raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
-    names = list(params) if params else list(MATERIALS[material].required) + ["velocity"]
+    names = list(params) if params else list(MATERIALS[material].required()) + ["velocity"]
     say("reconstruct")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
                         progress=progress)
