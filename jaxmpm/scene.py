@@ -66,9 +66,8 @@ def _number(value, where: str, positive: bool = False, integer: bool = False) ->
 def _declared(parameter: Parameter, value, where: str) -> float:
     """``value`` of a declared parameter, checked against its declared range (one line naming ``where``)."""
     value = _number(value, f"{where}.{parameter.name}")
-    complaint = parameter.check(value, where)
-    if complaint is not None:
-        raise SceneError(complaint)
+    if value not in parameter.range:
+        raise SceneError(f"{where}.{parameter.name} = {value} is out of range (must be {parameter.range.text})")
     return value
 
 
