@@ -148,7 +148,6 @@ def _rotational_dofs(dim: int) -> int:
 
 def applicable(model, extension: str) -> str | None:
     """``None`` if ``extension`` applies to ``model``, else the reason it does not."""
-    from .colliders import Plane
     from .constitutive import Sand
 
     if extension not in EXTENSIONS:
