@@ -1,8 +1,9 @@
 """The solvers of the identification core.
 
-* :func:`levenberg_marquardt`: ``optimistix.LevenbergMarquardt`` on forward-mode Jacobians,
-  residuals scaled to a unit starting loss, with a Gauss–Newton test of what a stall means
-  (stationary point, the loss's round-off floor, or a rough loss to escape by line search).
+* :func:`levenberg_marquardt`: optimistix's Levenberg–Marquardt algorithm run on the host over
+  one compiled residual-and-Jacobian function (forward mode), residuals scaled to a unit
+  starting loss, with a Gauss–Newton test of what a stall means (stationary point, the loss's
+  round-off floor, or a rough loss to escape by line search).
 * :func:`bounded_levenberg_marquardt`: the same damping idea on host NumPy with bounds (an
   active set) and a per-parameter trust region, for discovery, whose extension parameters have
   their null values on bounds (a drag, a friction or a restitution cannot be negative; the
