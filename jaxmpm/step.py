@@ -16,7 +16,7 @@ Every function here is pure and dimension-generic (D = 2 or 3 from array shapes)
 from __future__ import annotations
 
 import math
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -607,8 +607,9 @@ def simulate(
         raise ValueError(f"checkpoint must be one of {CHECKPOINT_POLICIES}, got {checkpoint!r}")
     frames = model.frames if frames is None else frames
     model, params, state = _start(model, params, state)
-    frame = _frame_function(model, params, observe, checkpoint, state)
-    first = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), state)
+    base = _health_baseline(model, params, state)
+    frame = _frame_function(model, params, observe, checkpoint, base)
+    first = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
     final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
     out = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
     return _trajectory(model, out, final)
@@ -632,9 +633,28 @@ def _trajectory(model: Model, out, final: State) -> Trajectory:
     )
 
 
-def _frame_function(model: Model, params: Params, observe, checkpoint, start: State):
+class _HealthBaseline(NamedTuple):
+    """What a rollout's per-frame health is measured against, computed once from its start:
+    the initial kinetic plus potential energy and its unit (None when energy is not checked),
+    and the stress-wave CFL number (constant over the rollout)."""
+
+    energy: Any
+    scale: Any
+    wave: Any
+
+
+def _health_baseline(model: Model, params: Params, start: State) -> _HealthBaseline:
+    stop = jax.lax.stop_gradient
+    wave = stop(wave_cfl(model, params))
+    if not _energy_checked(model):
+        return _HealthBaseline(None, None, wave)
+    g = params["gravity"]
+    return _HealthBaseline(stop(mechanical_energy(start, g)), stop(energy_scale(model, start, g)), wave)
+
+
+def _frame_function(model: Model, params: Params, observe, checkpoint, base: _HealthBaseline):
     """``frame(state, _) -> (state, outputs)``: ``model.substeps`` steps and the frame's
-    outputs (energy measured against the ``start`` state)."""
+    outputs (health measured against ``base``)."""
     dt, dx = model.dt, model.grid.dx
 
     def substep(carry, _):
@@ -648,7 +668,7 @@ def _frame_function(model: Model, params: Params, observe, checkpoint, start: St
     def frame(s, _):
         zero = jnp.zeros((), s.x.dtype)
         (s, cfl), _ = jax.lax.scan(substep, (s, zero), None, length=model.substeps)
-        return s, _frame_outputs(model, params, s, observe, cfl, start)
+        return s, _frame_outputs(model, params, s, observe, cfl, base)
 
     if checkpoint in ("frame", "nested"):
         frame = jax.checkpoint(frame)
@@ -675,10 +695,10 @@ def run_frames(
     from .errors import SimulationError
 
     model, params, state = _start(model, params, state)
-    start = state
-    frame = jax.jit(_frame_function(model, params, observe, None, start))
+    base = _health_baseline(model, params, state)
+    frame = jax.jit(_frame_function(model, params, observe, None, base))
     outputs = []
-    out = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), start)
+    out = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
     for i in range(model.frames):
         if i > 0:
             state, out = frame(state, None)
@@ -692,14 +712,11 @@ def run_frames(
     return _trajectory(model, stacked, state)
 
 
-def _frame_outputs(model: Model, params: Params, s: State, observe, cfl, start: State):
+def _frame_outputs(model: Model, params: Params, s: State, observe, cfl, base: _HealthBaseline):
+    stop = jax.lax.stop_gradient
     extra = observe(s) if observe is not None else None
     nan = jnp.any(jnp.isnan(s.x)) | jnp.any(jnp.isnan(s.v))
     gain = jnp.zeros((), s.x.dtype)
-    if _energy_checked(model):
-        stop = jax.lax.stop_gradient
-        g = params["gravity"]
-        e0 = mechanical_energy(stop(start), g)
-        gain = stop((mechanical_energy(stop(s), g) - e0) / energy_scale(model, stop(start), g))
-    wave = jax.lax.stop_gradient(wave_cfl(model, params))
-    return s.x, s.v, extra, jax.lax.stop_gradient(cfl), nan, _left_domain(model.grid, s.x), gain, wave
+    if base.energy is not None:
+        gain = stop((mechanical_energy(stop(s), params["gravity"]) - base.energy) / base.scale)
+    return s.x, s.v, extra, stop(cfl), nan, _left_domain(model.grid, s.x), gain, base.wave
