@@ -48,7 +48,7 @@ import numpy as np
 from . import extensions as X
 from .errors import JaxmpmError, ObservationError
 from .identify.parameters import from_unconstrained, get_param, resolve_name, set_param, to_unconstrained, transform_of
-from .identify.residuals import Frames, image_terms, lifted_layers, make_fit_renderer, probe_term, track_term
+from .identify.residuals import Frames, image_terms, make_fit_renderer, probe_term, track_term
 from .identify.solvers import bounded_levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
@@ -216,8 +216,7 @@ class _SeqData:
             H, W = np.shape(obs.masks)[2:4]
             renderer = seq.renderer if seq.renderer is not None else silhouette_renderer(model)
             parts += image_terms(model, obs, every, dtype, weights={"silhouette": 1.0}, renderer=renderer,
-                                 num_pixels=num_pixels, margin=max(2, int(0.08 * max(H, W))), normalise="group",
-                                 lift=lifted_layers(model) if model.dim == 2 else None)
+                                 num_pixels=num_pixels, margin=max(2, int(0.08 * max(H, W))), normalise="group")
         if obs.probe_names is not None:
             parts.append(probe_term(model, obs, None, dtype, extra=seq.probes, normalise="group"))
             pt = np.asarray(obs.probe_times, float)

@@ -117,7 +117,7 @@ def test_moving_collider_is_found():
 
 
 def test_gravity_error_is_found_from_silhouettes():
-    from jaxmpm.discover import lifted_layers
+    from jaxmpm.identify.residuals import lifted_layers
     from jaxmpm.render import look_at, render_views
 
     scene = load_scene(_spec(THROW))

@@ -46,7 +46,7 @@ from __future__ import annotations
 import abc
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import equinox as eqx
@@ -477,7 +477,6 @@ class Layout:
             observed frame; one frame-length time bin of a probe); ``-1`` for entries that carry
             no data (NaN or out-of-window samples: their residual is 0).
         group_times, group_kinds, group_labels: per group its time (s), kind and a label.
-        info: details for reports (points, pixels, views, probe names, ...).
     """
 
     name: str
@@ -487,7 +486,6 @@ class Layout:
     group_times: np.ndarray
     group_kinds: list
     group_labels: list
-    info: dict = field(default_factory=dict)
 
 
 #: How a term scales its residuals: ``"term"``: ``sum(r**2) = weight * (the term's mean
@@ -546,7 +544,7 @@ def track_term(model: Model, obs: Observation, sel: np.ndarray, dtype, *, normal
                   scale=jnp.asarray(scale, dtype), by_id=by_id)
     count = int(valid.sum()) * D if by_id else int(valid.sum()) + T * model.num_particles
     layout = Layout("tracks", weight, count, np.repeat(np.arange(T), per_frame), times, ["tracks"] * T,
-                    _frame_labels(times), {"points": N, "chamfer": not by_id})
+                    _frame_labels(times))
     return term, layout
 
 
@@ -615,8 +613,7 @@ def probe_term(model: Model, obs: Observation, until: float | None, dtype, *, ex
     term = Probes(frame_dt=float(model.frame_dt), times=jnp.asarray(np.where(keep, pt, 0.0), dtype),
                   target=jnp.asarray(np.where(keep, pv, 0.0), dtype), valid=jnp.asarray(keep),
                   scale=jnp.asarray(scale, dtype), model=model, fns=fns)
-    layout = Layout("probes", weight, int(keep.sum()), gid.reshape(-1), np.asarray(gtime), gkind, glabel,
-                    {"names": names})
+    layout = Layout("probes", weight, int(keep.sum()), gid.reshape(-1), np.asarray(gtime), gkind, glabel)
     return term, layout
 
 
@@ -708,12 +705,12 @@ class MaskedRGB(_PixelTerm):
 
 def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weights: dict, renderer, num_pixels: int,
                 uniform_fraction: float = 0.25, margin: int | None = None, seed: int = 0, colors=None,
-                lift=None, normalise: str = "term") -> list[tuple[_PixelTerm, Layout]]:
+                normalise: str = "term") -> list[tuple[_PixelTerm, Layout]]:
     """The silhouette and masked-RGB terms (those with a positive weight) of the observed
     times ``sel``, on one fixed pixel batch per view and frame: ``1 − uniform_fraction`` of
     it from the union over frames of each view's masks dilated by ``margin`` pixels (default
-    5 % of the image size), the rest uniform over the image. ``lift``: z offsets that lift a
-    2D scene to 3D for rendering."""
+    5 % of the image size), the rest uniform over the image. A 2D scene is rendered lifted onto
+    the layers :func:`lifted_layers`."""
     _check_normalise(normalise)
     cams = _check_cameras(obs, dtype)
     V, H, W = cams.num_views, cams.height, cams.width
@@ -729,7 +726,7 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
     L = max(len(c) for c in cand)
     shared = dict(
         frame_dt=float(model.frame_dt), times=jnp.asarray(times, dtype), cameras=cams, renderer=renderer,
-        lift=jnp.asarray(np.zeros(0) if lift is None else lift, dtype),
+        lift=jnp.asarray(lifted_layers(model) if model.dim == 2 else np.zeros(0), dtype),
         masks=None if masks is None else jnp.asarray(np.swapaxes(masks, 0, 1).reshape(T, V, H * W)),
         fixed=jnp.asarray(_fixed_pixels(np.random.default_rng(seed), cand, T, H, W, n, uniform_fraction)),
         cand_table=jnp.asarray(np.stack([np.resize(c, L) for c in cand]).astype(np.int32)),
@@ -741,7 +738,7 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
         per_frame = math.sqrt(w_sil / T) if normalise == "term" else 1.0
         term = Silhouette(scale=jnp.full(T, per_frame / math.sqrt(V * n), dtype), **shared)
         out.append((term, Layout("silhouette", w_sil, T * V * n, np.repeat(np.arange(T), V * n), times,
-                                 ["silhouette"] * T, _frame_labels(times), {"pixels": n, "views": V})))
+                                 ["silhouette"] * T, _frame_labels(times))))
     w_rgb = weights.get("rgb", 0.0)
     if images is not None and w_rgb > 0:
         if normalise != "term":
@@ -751,7 +748,7 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
         term = MaskedRGB(images=jnp.asarray(np.swapaxes(images, 0, 1).reshape(T, V, H * W, 3)),
                          colors=None if colors is None else jnp.asarray(colors, dtype), weight=w_rgb, **shared)
         out.append((term, Layout("rgb", w_rgb, T * V * n * 3, np.repeat(np.arange(T), V * n * 3), times,
-                                 ["rgb"] * T, _frame_labels(times), {"pixels": n, "views": V})))
+                                 ["rgb"] * T, _frame_labels(times))))
     return out
 
 
@@ -925,7 +922,7 @@ def build_objective(
     if w["silhouette"] > 0 or w["rgb"] > 0:
         terms += image_terms(model, observation, sel, dtype, weights=w, renderer=make_fit_renderer(renderer, model),
                              num_pixels=num_pixels, uniform_fraction=uniform_fraction, margin=pixel_margin,
-                             seed=pixel_seed, colors=colors, lift=lifted_layers(model) if model.dim == 2 else None)
+                             seed=pixel_seed, colors=colors)
     if w["probes"] > 0:
         terms.append(probe_term(model, observation, until, dtype, extra=probes, weight=w["probes"]))
     return Objective(model, terms, frames, checkpoint, cfl_limit, until, times[sel])
