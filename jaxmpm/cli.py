@@ -160,7 +160,6 @@ def cmd_fit(args) -> int:
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
                        velocity_until=args.velocity_until)
-    config.check()
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     write_json(Path(args.out), payload)
