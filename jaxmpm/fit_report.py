@@ -29,9 +29,9 @@ def format_table(result, truth: dict | None = None) -> str:
     """
     rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
     for name, value in result.values.items():
-        row = (name, _fmt(result.initial.get(name)), _fmt(value), _fmt(result.std.get(name)))
+        row = (name, format_value(result.initial.get(name)), format_value(value), format_value(result.std.get(name)))
         if truth:
-            row += (_fmt(truth[name]), _error_text(name, value, truth[name]))
+            row += (format_value(truth[name]), _error_text(name, value, truth[name]))
         rows.append(row)
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
@@ -56,7 +56,8 @@ def format_timing(result) -> str:
     return "\n".join(lines)
 
 
-def _fmt(v) -> str:
+def format_value(v) -> str:
+    """A parameter value for tables: ``-`` for None, 4 significant digits, vectors in brackets."""
     if v is None:
         return "-"
     v = np.asarray(v, float)

@@ -23,6 +23,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ObservationError
+from ..fit_report import format_value
 from .collider import Surfels, fit_surfels, hull_mesh
 from .dataset import Dataset, read_dataset
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
@@ -362,7 +363,7 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
     lines = [f"# identify: {material}", "", "## Parameters", "", "| parameter | estimate | σ |", "|---|---|---|"]
     for name, value in result.values.items():
         std = result.std.get(name)
-        lines.append(f"| {name} | {_fmt(value)} | {_fmt(std)} |")
+        lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |")
     lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
               "## Silhouette IoU over time (observed vs simulated)", "",
               "| t (s) | " + " | ".join(f"view {v}" for v in range(iou.shape[0])) + " |",
@@ -380,13 +381,6 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
                      + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
     lines.append(f"- the scene uses the reconstructed collider as: {recon.collider or 'none (no data/c_*.png)'}")
     path.write_text("\n".join(lines) + "\n")
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    a = np.asarray(v, float)
-    return "[" + ", ".join(f"{x:.4g}" for x in a.ravel()) + "]" if a.ndim else f"{float(a):.4g}"
 
 
 @dataclass
