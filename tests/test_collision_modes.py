@@ -5,6 +5,7 @@ node rows, boundary particles hold it about 1 dx off without a leak, and the con
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from collider_scenes import ELASTIC, FLUID, SAND, rollout
 
 from jaxmpm.colliders import project_velocity
 from jaxmpm.scene import load_scene
+from jaxmpm import initial_state, step
 
 DX = 0.02
 
@@ -77,30 +79,69 @@ def test_contact_law_sends_back_e_times_the_approach_speed(contact):
                                rtol=1e-6)
 
 
-def _rebound_speed(restitution: float, folder) -> float:
-    """One free particle (no stress) falls at 2 m/s onto a CPIC box with slip contact and
-    restitution ``e``, without gravity; its normal speed once it has left the box, / 2 m/s."""
+def _free_particle_normal_speeds(restitution: float, folder, contact: str = "slip") -> np.ndarray:
+    """One free particle thrown at 2 m/s onto a CPIC box with restitution ``e``, without
+    gravity: its normal velocity (m/s) and height after every substep, ``(S, 2)``. Its
+    material is elastic with E = 1 Pa: stress negligible (with E = 1 kPa the deformation the
+    contact gives it pushes it off the box slowly, as it would a real elastic body)."""
     np.save(folder / "one.npy", np.array([[0.5, 0.13]]))
     spec = {
-        "dim": 2, "dx": DX, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 60, "frame_dt": 1 / 480,
+        "dim": 2, "dx": DX, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 30, "frame_dt": 1 / 480,
         "substeps": 8, "gravity": [0.0, 0.0],
-        "bodies": [{"shape": "points", "path": "one.npy", "velocity": [0.0, -2.0],
-                    "material": {"model": "elastic", "E": 1e3, "nu": 0.3}}],
-        "colliders": [{"type": "box", "name": "floor", "lo": [0.0, 0.0], "hi": [1.0, 0.1], "contact": "slip",
+        "bodies": [{"shape": "points", "path": "one.npy", "velocity": [0.6, -2.0],
+                    "material": {"model": "elastic", "E": 1.0, "nu": 0.3}}],
+        "colliders": [{"type": "box", "name": "floor", "lo": [0.0, 0.0], "hi": [1.0, 0.1], "contact": contact,
                        "restitution": restitution}],
     }
     scene = load_scene(spec, base_dir=folder)
-    _, x, v = rollout(scene.model, scene.params)
-    assert x[-1, 0, 1] > 0.12  # it has bounced off and left the box's band
-    return float(v[-1, 0, 1]) / 2.0
+
+    def substeps(state, _):
+        state = step(scene.model, scene.params, state)
+        return state, jnp.stack([state.v[0, 1], state.x[0, 1]])
+
+    _, out = jax.lax.scan(substeps, initial_state(scene.model, scene.params), None, length=30 * 8)
+    return np.asarray(out)
 
 
-@pytest.mark.xfail(strict=True, reason="known gap (reported): a free particle leaves a CPIC box at 0.40 v_in "
-                   "with e = 0 (the penetration correction pushes it out) and 0.60 v_in with e = 1")
-def test_a_free_particle_bounces_off_a_box_at_e_times_its_speed(tmp_path):
-    """What docs/colliders.md's contact law promises a user: rebound speed e v_in."""
-    for e in (0.0, 1.0):
-        assert _rebound_speed(e, tmp_path) == pytest.approx(e, abs=0.1)
+#: Known defect, measured and not fixed (docs/colliders.md, "Restitution in CPIC"): a particle
+#: that reaches a CPIC surface is held there by the position correction while its velocity
+#: still points into the collider, and a ghost layer of weight W < 1 can only slow an
+#: approach, never reverse it; the contact law is not applied where the particle meets the
+#: surface. Applying it there fixes these tests but changes a sand pile on a sticky box.
+SURFACE_LAW_MISSING = pytest.mark.xfail(strict=True, reason="known defect: CPIC does not apply the contact law "
+                                        "where a particle meets the surface (docs/colliders.md)")
+
+
+@SURFACE_LAW_MISSING
+@pytest.mark.parametrize("e", [0.0, 0.3, 1.0])
+def test_a_free_particle_leaves_a_box_at_e_times_the_speed_it_arrives_with(e, tmp_path):
+    """The contact law's promise (docs/colliders.md): a particle that reaches the surface
+    leaves with ``e`` times its normal arrival speed, and with ``e = 0`` it stays on the
+    surface. Today (E = 1 Pa) with e = 0 it stays 0.05 dx inside the box, held by the
+    position correction with -1.64 m/s still pointing into it, and with e = 1 it comes to
+    rest: no bounce (with E = 1 kPa its own stress sends it off at 0.40 v_in for e = 0 and 0.60
+    for e = 1). Before the surface the ghost layer slows the approach (by ~17%)."""
+    vy, y = _free_particle_normal_speeds(e, tmp_path).T
+    turn = int(np.argmax(vy >= 0.0))  # the substep at which the particle met the surface
+    arrival = -vy[turn - 1]
+    assert 0.75 * 2.0 < arrival <= 2.0  # the ghost layer slowed it, but not much
+    assert np.all(np.diff(vy[:turn]) > -1e-6)  # ... monotonically, without a bounce before the surface
+    # it leaves at e v_a (v_a: the speed of the substep before the hit, which slows it by
+    # another 0.5% in the ghost layer before the rebound), and keeps that speed
+    np.testing.assert_allclose(vy[turn], e * arrival, rtol=1e-2, atol=1e-5)
+    assert np.ptp(vy[turn:]) < 1e-5
+    assert y.min() > 0.1 - 0.05 * DX  # it did not enter the box
+    if e == 0.0:
+        assert np.ptp(y[turn:]) < 1e-3 * DX  # it rests on the surface
+
+
+@SURFACE_LAW_MISSING
+def test_sticky_contact_has_no_rebound_whatever_its_restitution(tmp_path):
+    vy, y = _free_particle_normal_speeds(1.0, tmp_path, contact="sticky").T
+    turn = int(np.argmax(vy >= 0.0))
+    assert vy[turn - 1] < -1.5  # it arrived fast ...
+    assert vy[turn:].max() < 1e-3 and abs(vy[-1]) < 1e-3  # ... and never left
+    assert y.min() > 0.1 - 0.05 * DX
 
 
 def test_fluid_on_a_3d_shell_of_gaussian_disks_stays_outside(tmp_path):
