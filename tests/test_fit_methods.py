@@ -36,7 +36,7 @@ def obs():
     return _observe(_spec())
 
 
-@pytest.mark.parametrize("method", ["adam", pytest.param("bfgs", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["adam", "bfgs"])
 def test_other_optimisers_reduce_the_loss(obs, method):
     start = load_scene(_spec(mu=20.0))
     seen = []
@@ -142,7 +142,6 @@ def test_truth_lies_within_a_few_sigma_with_noisy_tracks():
     assert s_mu < 0.1 * mu
 
 
-@pytest.mark.slow
 def test_contact_redetected_with_the_fitted_velocity():
     """Without per-particle tracks the contact comes from a rollout of the initial guess
     (dropped from rest, it lands later than the truth thrown downwards). The fit therefore
