@@ -705,13 +705,16 @@ def surface_estimate(nodes: list[NodeSample], dx: float):
     Each affine node's signed distance is carried to the particle along its normal,
     ``s_i - N_i·(x_i - x_p)`` (exact for a planar face) and averaged with the nodes' weights;
     the normal is the normalised weighted sum of the nodes' normals. Nodes whose normal is
-    *opposed* (:data:`OPPOSED_COS`) to that of the node carrying the largest value are left
-    out: beside a solid thinner than the stencil, the nodes past it belong to its far face,
-    whose plane the particle lies behind (their carried value is minus the particle's
-    distance through the solid); averaging them in gave a wrong side, a normal near zero and
-    a penetration the particle did not have. The face carrying the largest value is the face
-    the particle is in front of (or, if penetrated, the one it penetrated least deeply).
-    Without opposed nodes (every thick collider) nothing is left out.
+    *opposed* (:data:`OPPOSED_COS`) to that of the reference node are left out. The
+    reference is the node carrying the smallest value ``>= 0`` (the nearest face the particle
+    is in front of) or, where every value is negative (penetrated), the largest (the face it
+    penetrated least deeply). Beside a solid thinner than the stencil the nodes past it
+    belong to its far face, whose plane the particle lies behind (their carried value is
+    minus the particle's distance through the solid): averaging them in gave a wrong side, a
+    normal near zero and a penetration the particle did not have. In a crease, whose two
+    walls face each other, both carry values ``>= 0`` and the nearer wall is the one the
+    particle may cross (ranking the largest first took the farther wall: sand went 0.29 dx
+    into the scaled bunny instead of 0.17 dx). Without opposed nodes nothing is left out.
 
     Returns:
         ``phi (N,)`` (``+2 dx`` where no node is affine), ``normal (N, D)`` (``+`` side),
@@ -721,8 +724,11 @@ def surface_estimate(nodes: list[NodeSample], dx: float):
     best = jnp.full_like(carried[0], -jnp.inf)
     ref = jnp.zeros_like(nodes[0].normal)
     for s, c in zip(nodes, carried):
-        better = s.affine & (c > best)
-        best = jnp.where(better, c, best)
+        # rank: the nearest face in front of the particle (smallest c >= 0), else the one
+        # penetrated least deeply (largest c < 0)
+        key = jnp.where(c >= 0, 100.0 * dx - c, c)  # |c| < 5 dx: every c >= 0 ranks first
+        better = s.affine & (key > best)
+        best = jnp.where(better, key, best)
         ref = jnp.where(better[:, None], s.normal, ref)
     sw = jnp.zeros_like(carried[0])
     sphi = jnp.zeros_like(carried[0])
