@@ -43,7 +43,7 @@ code uses :func:`enable`, :func:`parameter_specs`, :func:`flatten` / :func:`unfl
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -277,14 +277,6 @@ def _ext(params) -> dict:
     return params.get("extensions") or {}
 
 
-def _replace_static(module, **changes):
-    """A shallow copy of an equinox module with static fields replaced (geometry unchanged)."""
-    new = copy.copy(module)
-    for key, value in changes.items():
-        object.__setattr__(new, key, value)
-    return new
-
-
 def prepare(model, params):
     """Apply the extensions that change the model or the params (called by ``simulate``).
 
@@ -309,7 +301,7 @@ def prepare(model, params):
                 mu = jnp.asarray(cparams[k]["friction"])
                 cparams[k]["friction"] = mu + jnp.asarray(ext["collider_friction"][c.name]).astype(mu.dtype)
                 if c.contact == "slip":
-                    colliders[k] = _replace_static(c, contact="friction")
+                    colliders[k] = c.with_contact("friction")
                     changed = True
     if "restitution" in ext:
         for k, c in enumerate(colliders):
@@ -319,23 +311,18 @@ def prepare(model, params):
     if "moving_collider" in ext:
         for k, c in enumerate(colliders):
             if c.name in ext["moving_collider"]:
-                colliders[k] = _replace_static(c, motion=_translated_motion(c, ext["moving_collider"][c.name]))
+                colliders[k] = c.with_contact(motion=_translated_motion(c, ext["moving_collider"][c.name]))
                 changed = True
     params["colliders"] = tuple(cparams)
     # consumed: a second call (e.g. a nested simulate) must not apply them again
     params["extensions"] = {k: v for k, v in ext.items() if k not in _PREPARED}
     if changed:
-        model = _with_colliders_keep_fields(model, colliders)
+        model = dataclasses.replace(model, colliders=tuple(colliders))  # the same fields: same geometry
     return model, params
 
 
 #: Extensions applied by :func:`prepare` (removed from the params it returns).
 _PREPARED = ("gravity", "collider_friction", "restitution", "moving_collider")
-
-
-def _with_colliders_keep_fields(model, colliders):
-    """The model with other collider objects but the same precomputed fields / boundary."""
-    return _replace_static(model, colliders=tuple(colliders))
 
 
 def _translated_motion(collider, dv):

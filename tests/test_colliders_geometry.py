@@ -357,3 +357,18 @@ def test_collider_is_a_jit_argument_and_dense_view():
     dense = field_to_dense(field, GRID3)
     assert dense["affinity"].shape == GRID3.shape and dense["normal"].shape == GRID3.shape + (3,)
     assert dense["affinity"].sum() == field.num_affine
+
+
+def test_with_contact_swaps_the_contact_law_or_motion_and_keeps_the_shape():
+    box = Box([0.1, 0.2], [0.4, 0.3], contact="slip", name="b")
+    rough = box.with_contact("friction")
+    assert (rough.contact, box.contact) == ("friction", "slip")  # a copy; the original is unchanged
+    x = jnp.asarray([[0.2, 0.25], [0.5, 0.5]])
+    for a, b in zip(rough.signed_distance(x, jnp.asarray(0.0)), box.signed_distance(x, jnp.asarray(0.0))):
+        np.testing.assert_array_equal(a, b)
+    moved = box.with_contact(motion=lambda t: (jnp.asarray([0.25, 0.25]) + t, jnp.eye(2)))
+    assert moved.moving and moved.contact == "slip" and not box.moving
+    with pytest.raises(SceneError, match="'contact' must be one of"):
+        box.with_contact("glue")
+    with pytest.raises(SceneError, match="'motion' must be a callable"):
+        box.with_contact(motion=3.0)

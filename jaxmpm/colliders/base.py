@@ -8,6 +8,7 @@ mu_b, ``restitution`` = e), so that ``jax.grad`` reaches them.
 from __future__ import annotations
 
 import abc
+import copy
 from typing import ClassVar
 
 import equinox as eqx
@@ -275,6 +276,26 @@ class RigidCollider(Collider):
     def rotating(self) -> bool:
         """True if the collider may rotate (a scripted ``motion`` or a non-zero angular velocity)."""
         return getattr(self, "motion", None) is not None or any(c != 0.0 for c in self.angular_velocity)
+
+    def with_contact(self, contact: str | None = None, motion=None) -> "RigidCollider":
+        """A copy with another contact law and/or scripted ``motion`` (validated as in the
+        constructor) and the same shape, so a collision field built from this collider's
+        geometry stays valid for the copy (its constructor is not run again: a mesh's
+        field and pre-processing are kept).
+
+        ``contact`` and ``motion`` are static fields, which ``eqx.tree_at`` cannot replace;
+        this is the one place that sets them on a copy.
+        """
+        contact = self.contact if contact is None else contact
+        if contact not in CONTACTS:
+            raise SceneError(f"collider {self.name!r}: 'contact' must be one of {CONTACTS}, got {contact!r}")
+        if motion is not None and not callable(motion):
+            raise SceneError(f"collider {self.name!r}: 'motion' must be a callable t -> (c(t), R(t)), got {motion!r}")
+        new = copy.copy(self)
+        object.__setattr__(new, "contact", contact)
+        if motion is not None:
+            object.__setattr__(new, "motion", motion)
+        return new
 
     @abc.abstractmethod
     def bounds(self) -> np.ndarray:
