@@ -8,6 +8,8 @@ from .collider import hull_mesh as hull_mesh
 from .dataset import Dataset as Dataset
 from .dataset import read_dataset as read_dataset
 from .dataset import read_hint as read_hint
+from .free_fall import FreeFall as FreeFall
+from .free_fall import free_fall as free_fall
 from .hull import Hull as Hull
 from .hull import hull_particles as hull_particles
 from .hull import silhouette_iou as silhouette_iou

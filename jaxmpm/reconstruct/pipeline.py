@@ -26,6 +26,7 @@ from ..errors import ObservationError
 from ..fit_report import format_value
 from .collider import Surfels, fit_surfels, hull_mesh
 from .dataset import Dataset, read_dataset
+from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
@@ -57,6 +58,8 @@ class Reconstruction:
         collider_mesh: marching-cubes mesh of the collider hull (``trimesh.Trimesh``) or None.
         surfels: fitted collider surfels or None.
         collider: which reconstructed collider the scene uses: ``"disks"``, ``"mesh"`` or None.
+        free_fall: the free-fall analysis of the silhouettes (:func:`free_fall`): the body's
+            starting velocity guess, and the gravity when the hint gives none.
     """
 
     spec: dict
@@ -66,6 +69,12 @@ class Reconstruction:
     collider_mesh: object | None = None
     surfels: Surfels | None = None
     collider: str | None = None
+    free_fall: FreeFall | None = None
+
+
+#: Free-fall frames needed before the silhouettes' gravity replaces the default: a parabola
+#: passes through any 3 centres, so the 4th is the first check that the body fell freely.
+GRAVITY_FRAMES = 4
 
 
 def _optical_center(K: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, float]:
@@ -261,13 +270,19 @@ def reconstruct(
     _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=collider == "disks",
                                           surfel_count=surfel_count, surfel_steps=surfel_steps, progress=progress)
     spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
+    obs = dataset.observation
+    fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"])
+    if fall.velocity is not None:
+        spec["bodies"][0]["velocity"] = [float(v) for v in fall.velocity]
+    if "gravity" not in dataset.hint and fall.gravity is not None and fall.frames >= GRAVITY_FRAMES:
+        spec["gravity"] = [float(g) for g in fall.gravity]
     used = None
     if mesh is not None:
         used = collider
         entry = {"type": "disks", "path": "collider_disks.npz"} if collider == "disks" else {"type": "mesh", "path": "collider.obj"}
         spec["colliders"].append({**entry, "name": "collider", "contact": "sticky"})
     return Reconstruction(spec=spec, points=points, body_hull=hull, body_iou=iou, collider_mesh=mesh, surfels=surf,
-                          collider=used)
+                          collider=used, free_fall=fall)
 
 
 def _check_floors(points: np.ndarray, planes: list[dict], folder) -> None:
@@ -380,6 +395,17 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
         lines.append(f"- collider surfels: {len(recon.surfels.centers)} kept; IoU per view with the collider masks: "
                      + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
     lines.append(f"- the scene uses the reconstructed collider as: {recon.collider or 'none (no data/c_*.png)'}")
+    fall = recon.free_fall
+    if fall is not None:
+        lines.append(f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)")
+        if fall.velocity is not None:
+            lines.append("- initial velocity from the free fall (the fit's starting guess): "
+                         + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
+        if fall.gravity is not None:
+            used = fall.frames >= GRAVITY_FRAMES and recon.spec["gravity"] == [float(g) for g in fall.gravity]
+            lines.append("- gravity from the free fall: " + ", ".join(f"{g:.2f}" for g in fall.gravity)
+                         + f" m/s² (|g| = {np.linalg.norm(fall.gravity):.2f}); "
+                         + ("used by the scene" if used else f"not used (the scene's: {recon.spec['gravity']})"))
     path.write_text("\n".join(lines) + "\n")
 
 

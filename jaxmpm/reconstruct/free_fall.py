@@ -1,0 +1,150 @@
+"""Initial velocity and gravity from the free-fall frames of the silhouettes.
+
+Per frame, the body's centre is triangulated from the views: the ray through each view's
+silhouette centroid (the mean direction of the rays through the mask's pixels) and the point
+nearest to all of them (least squares). While the body falls freely its centre follows
+``c(t) = c0 + v0 t + g t² / 2``; the free-fall frames are the longest prefix of frames that
+such a parabola fits within :data:`FREE_FALL_TOLERANCE` cells (RMS), and contact is where the
+next frame departs from it. AS-DiffMPM estimates the initial velocity and gravity from that
+phase; here ``v0`` needs 2 free-fall frames and ``g`` 3.
+
+The centroid of a silhouette is the projection of the body's centre only for a convex body
+seen from afar; the error is the same in every frame while the body keeps its shape (free
+fall), so it moves ``c0``, not ``v0`` or ``g``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ObservationError
+
+__all__ = ["FreeFall", "FREE_FALL_TOLERANCE", "silhouette_rays", "triangulate", "free_fall"]
+
+#: RMS residual (in cells of the scene's dx) below which frames count as free fall.
+FREE_FALL_TOLERANCE = 0.1
+
+
+@dataclass(frozen=True)
+class FreeFall:
+    """What the free-fall frames say.
+
+    Attributes:
+        centres: ``(T, 3)`` triangulated body centre per frame, m (NaN where fewer than 2
+            views see the body).
+        spread: ``(T,)`` RMS distance of the centre rays from ``centres``, m.
+        frames: number of leading frames that fit one parabola (the free fall; contact at
+            the next one).
+        velocity: ``(3,)`` initial velocity, m/s (None with fewer than 2 free-fall frames).
+        gravity: ``(3,)`` acceleration of the free fall, m/s² (None with fewer than 3).
+        residual: RMS residual of the parabola over the free-fall frames, m.
+    """
+
+    centres: np.ndarray
+    spread: np.ndarray
+    frames: int
+    velocity: np.ndarray | None
+    gravity: np.ndarray | None
+    residual: float
+
+    def gravity_direction(self) -> np.ndarray | None:
+        """Unit vector of :attr:`gravity` (None without it)."""
+        return None if self.gravity is None else self.gravity / np.linalg.norm(self.gravity)
+
+
+def silhouette_rays(masks: np.ndarray, cameras) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per view and frame, the ray through the silhouette's centroid.
+
+    Arguments:
+        masks: ``(V, T, H, W)`` bool.
+        cameras: a :class:`jaxmpm.render.Camera` batch of ``V`` views of ``H x W`` pixels.
+
+    Returns:
+        origins ``(V, 3)``, unit directions ``(V, T, 3)`` (NaN where the mask is empty), and
+        whether the view sees the body ``(V, T)`` bool.
+    """
+    V, T = masks.shape[:2]
+    origins = np.zeros((V, 3))
+    dirs = np.full((V, T, 3), np.nan)
+    seen = masks.reshape(V, T, -1).any(axis=-1)
+    for v in range(V):
+        o, d = (np.asarray(a, float) for a in cameras.view(v).rays())
+        origins[v] = o[0]
+        flat = masks[v].reshape(T, -1).astype(float)
+        mean = flat @ d / np.maximum(flat.sum(axis=1, keepdims=True), 1.0)
+        norm = np.linalg.norm(mean, axis=1, keepdims=True)
+        dirs[v] = np.where(seen[v][:, None], mean / np.where(norm > 0, norm, 1.0), np.nan)
+    return origins, dirs, seen
+
+
+def triangulate(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point nearest (least squares) to the rays ``o_v + t d_v``, and the RMS distance of
+    the rays from it (m). ``origins (V, 3)``, unit ``directions (V, 3)``; NaN rays are left
+    out; fewer than 2 rays gives NaN."""
+    ok = np.all(np.isfinite(directions), axis=1)
+    if ok.sum() < 2:
+        return np.full(3, np.nan), float("nan")
+    o, d = origins[ok], directions[ok]
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projectors onto each ray's normal plane
+    A, b = P.sum(axis=0), np.einsum("vij,vj->i", P, o)
+    x = np.linalg.lstsq(A, b, rcond=None)[0]
+    off = np.einsum("vij,vj->vi", P, x[None] - o)
+    return x, float(np.sqrt(np.mean(np.sum(off * off, axis=1))))
+
+
+def _parabola(times: np.ndarray, centres: np.ndarray, with_gravity: bool):
+    """Least-squares ``c0 + v t (+ g t²/2)`` through ``centres (k, 3)``: coefficients and RMS."""
+    cols = [np.ones_like(times), times] + ([0.5 * times**2] if with_gravity else [])
+    A = np.stack(cols, axis=1)
+    coef = np.linalg.lstsq(A, centres, rcond=None)[0]
+    r = A @ coef - centres
+    return coef, float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+
+
+def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, tolerance: float = FREE_FALL_TOLERANCE) -> FreeFall:
+    """The free-fall frames, initial velocity and gravity from the silhouettes.
+
+    Arguments:
+        masks: ``(V, T, H, W)`` bool silhouettes of the body.
+        cameras: their :class:`jaxmpm.render.Camera` batch.
+        times: ``(T,)`` frame times, s (frame 0 is the start).
+        dx: the scene's cell size, m (the residual tolerance is ``tolerance * dx``).
+        tolerance: see :data:`FREE_FALL_TOLERANCE`.
+
+    The free fall is grown frame by frame from the first 3 frames (2 when only 2 are
+    observed): a frame joins while the parabola through all frames so far fits within the
+    tolerance. ``gravity`` comes from 3 or more frames; a fit of exactly 3 frames has no
+    redundancy (its residual is 0), so its gravity is as noisy as the centres.
+    """
+    masks = np.asarray(masks, bool)
+    times = np.asarray(times, float)
+    if masks.ndim != 4 or masks.shape[1] != times.shape[0]:
+        raise ObservationError(f"free_fall: masks (V, T, H, W) with T = {times.shape[0]} frames, got {masks.shape}")
+    origins, dirs, _ = silhouette_rays(masks, cameras)
+    T = times.shape[0]
+    fits = [triangulate(origins, dirs[:, t]) for t in range(T)]
+    centres = np.stack([c for c, _ in fits])
+    spread = np.asarray([s for _, s in fits])
+    valid = np.all(np.isfinite(centres), axis=1)
+    n_valid = int(np.argmin(valid)) if not valid.all() else T  # leading frames where the body is seen
+    limit = tolerance * dx
+    frames, residual = min(n_valid, 2), 0.0
+    if n_valid >= 3:
+        _, residual = _parabola(times[:3], centres[:3], True)
+        frames = 3
+        while frames < n_valid:
+            _, r = _parabola(times[: frames + 1], centres[: frames + 1], True)
+            if r > limit:
+                break
+            frames, residual = frames + 1, r
+    t0 = times[:frames] - times[0]
+    velocity = gravity = None
+    if frames >= 3:
+        coef, residual = _parabola(t0, centres[:frames], True)
+        velocity, gravity = coef[1], coef[2]
+    elif frames == 2:
+        velocity = (centres[1] - centres[0]) / (t0[1] - t0[0])
+    return FreeFall(centres=centres, spread=spread, frames=frames, velocity=velocity, gravity=gravity,
+                    residual=float(residual))
