@@ -303,16 +303,6 @@ class _Problem:
             i += en.size
         self.size = i
         self.lower = np.concatenate([en.lower for en in self.entries])
-        #: largest change per LM iteration (optimisation space): 10 typical magnitudes for
-        #: extension offsets, else what the parameter's fitting space allows (Transform.max_step)
-        caps = []
-        for en in self.entries:
-            if en.kind == "ext":
-                caps.append(np.full(en.size, 10.0 * en.spec.scale))
-            else:
-                sd, path = next((sd, p) for sd, p in zip(self.seqs, self.paths[len(caps)]) if p is not None)
-                caps.append(np.ravel(transform_of(en.name).max_step(get_param(sd.params, path))))
-        self.max_step = np.concatenate(caps)
         self.upper = np.concatenate([en.upper for en in self.entries])
         self.evaluations = 0
         self.jvps = 0

@@ -4,11 +4,13 @@
   residuals and their Jacobian (one compiled forward-mode function for a JAX residual, or the
   caller's host functions), residuals scaled to a unit starting loss, with a Gauss–Newton test
   of what a stall means (stationary point, the loss's round-off floor, or a rough loss to escape
-  by line search). Optional bounds (an active set and a projection, so that a parameter can
-  stop exactly on its bound) serve discovery, whose extension parameters have their null
-  values on bounds (a drag, a friction or a restitution cannot be negative; the
-  likelihood-ratio test is one-sided there) — optimistix's solver has no bounds. Without bounds
-  its iterates are those of the unbounded algorithm, step for step.
+  by line search). It is the one least-squares solver of ``fit`` and ``discover``. Discovery
+  adds options: bounds (an active set that pins a parameter on the bound its step crosses, so
+  it can stop exactly there: extension parameters have their null values on bounds, a drag, a
+  friction or a restitution cannot be negative, and the likelihood-ratio test is one-sided
+  there; optimistix's solver has no bounds), Marquardt's scaling of the damping and a stop on
+  a small relative decrease of the loss. Without them, none of their code runs: ``fit``'s
+  iterates are the unbounded algorithm's, step for step.
 * :func:`bfgs` (optimistix) and :func:`adam` (optax, PAC-NeRF's optimiser) on the scalar loss.
 
 Each returns a :class:`SolverOutcome`.
@@ -28,7 +30,6 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..errors import JaxmpmError
 from .parameters import ADAM_LEARNING_RATES, leaf_name
 
 __all__ = [
@@ -132,7 +133,8 @@ def _projected(solve: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
         free &= ~out
 
 
-def _gauss_newton_from(r, J, y, rtol, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray | None, bool]:
+def _gauss_newton_from(r, J, y, rtol,
+                       bounds: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray | None, bool]:
     """:func:`gauss_newton_step` from residuals ``r`` and Jacobian ``J`` already evaluated at
     ``y``; within ``bounds`` (:func:`_projected`) when given."""
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
@@ -174,7 +176,8 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
     return promised <= noise
 
 
-def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None, bounds: tuple[np.ndarray, np.ndarray] | None = None):
+def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None,
+                        bounds: tuple[np.ndarray, np.ndarray] | None = None):
     """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
 
     A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
@@ -290,6 +293,12 @@ def levenberg_marquardt(
             ``None`` where there is none); ``y0`` is clipped into them.
         max_steps: trial points (rejected ones included); ``rtol``, ``atol``: the tolerances.
         progress: ``progress(offset + iteration, loss)`` every iteration.
+        ftol: an accepted step that lowers the loss by less than this fraction also passes
+            the tolerance test (then checked like the Cauchy test's pass).
+        scaled: damp each parameter by its own curvature (Marquardt: ``D = |J_j|`` at the
+            start, first damping :data:`MARQUARDT_START` of it) instead of optimistix's
+            identity, and hold the parameters the data do not see (:data:`INERT`): invariant
+            to the parameters' units, for parameters of unrelated kinds.
 
     The algorithm is optimistix's ``LevenbergMarquardt`` (a damped Gauss–Newton descent in a
     classical trust region, :data:`TRUST_LOW` ...; Cauchy termination), run on the host over
@@ -312,10 +321,11 @@ def levenberg_marquardt(
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance.
 
-    With bounds, every step (damped, Gauss–Newton, escape) is taken over the parameters not
-    pinned on a bound and projected into the box (:func:`_projected`), so the stop tests
-    measure the projected Gauss–Newton step: a minimum on a bound is a stationary point. Without
-    bounds none of this runs (the iterates are the unbounded algorithm's, step for step).
+    With bounds, every step (damped, Gauss–Newton, escape) is taken with the active set of
+    :func:`_projected` (parameters pinned on the bounds they would cross), so the stop tests
+    measure the constrained Gauss–Newton step: a minimum on a bound is a stationary point, and
+    a trial is accepted only where the linear model promises a decrease. Without bounds none
+    of this runs (the iterates are the unbounded algorithm's, step for step).
     ``y`` of the outcome is a pytree like ``y0`` (JAX path) or the float64 vector ``(P,)``.
     """
     clock = time.perf_counter()
@@ -331,7 +341,9 @@ def levenberg_marquardt(
             v = np.asarray(flat, np.float64)
             return residuals(v), lambda: jacobian(v)
 
-        loss_of = lambda v: float(np.sum(np.asarray(residuals(np.asarray(v, np.float64)), np.float64) ** 2))  # noqa: E731
+        def loss_of(v):
+            return float(np.sum(np.asarray(residuals(np.asarray(v, np.float64)), np.float64) ** 2))
+
         result = lambda v: np.asarray(v, np.float64)  # noqa: E731
     eps = float(jnp.finfo(dtype).eps)
     bounds = None
