@@ -49,7 +49,7 @@ from . import extensions as X
 from .errors import JaxmpmError, ObservationError
 from .identify.parameters import from_unconstrained, get_param, resolve_name, set_param, to_unconstrained, transform_of
 from .identify.residuals import Frames, image_terms, make_fit_renderer, probe_term, track_term
-from .identify.solvers import bounded_levenberg_marquardt
+from .identify.solvers import levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation
@@ -303,16 +303,6 @@ class _Problem:
             i += en.size
         self.size = i
         self.lower = np.concatenate([en.lower for en in self.entries])
-        #: largest change per LM iteration (optimisation space): 10 typical magnitudes for
-        #: extension offsets, else what the parameter's fitting space allows (Transform.max_step)
-        caps = []
-        for en in self.entries:
-            if en.kind == "ext":
-                caps.append(np.full(en.size, 10.0 * en.spec.scale))
-            else:
-                sd, path = next((sd, p) for sd, p in zip(self.seqs, self.paths[len(caps)]) if p is not None)
-                caps.append(np.ravel(transform_of(en.name).max_step(get_param(sd.params, path))))
-        self.max_step = np.concatenate(caps)
         self.upper = np.concatenate([en.upper for en in self.entries])
         self.evaluations = 0
         self.jvps = 0
@@ -459,6 +449,10 @@ class _Problem:
 
 @dataclass
 class _Fit:
+    """A least-squares fit: the full parameter vector ``theta (P,)``, all residuals there
+    ``r (M,)`` (held-out entries included), the training loss, trial points spent, the free
+    parameters' names, the training loss after each accepted step, and the covariance."""
+
     theta: np.ndarray
     r: np.ndarray
     loss: float
@@ -466,20 +460,47 @@ class _Fit:
     free: list
     history: list
     cov: np.ndarray | None = None
-    J: np.ndarray | None = None
 
 
-def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, tol=1e-5, progress=None) -> _Fit:
-    """The bounded Levenberg–Marquardt of the identification core on the training residuals
-    (held-out entries weigh 0); the held-out sequences are simulated once, at the estimate."""
+#: Tolerances of the Levenberg–Marquardt's Cauchy test (those of :class:`jaxmpm.FitConfig`), and
+#: the relative decrease of the training loss below which an accepted step also stops it.
+_RTOL, _ATOL, _FTOL = 1e-5, 1e-8, 1e-5
+
+
+def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, progress=None) -> _Fit:
+    """The identification core's Levenberg–Marquardt, within the parameters' bounds, on the
+    training residuals (held-out entries weigh 0; sequences held out entirely are not
+    simulated); all residuals are then evaluated once at the estimate.
+
+    Raises:
+        JaxmpmError: the loss is not finite at ``theta0`` (an unstable simulation).
+    """
     cols = problem.columns(free_names)
-    out = bounded_levenberg_marquardt(
-        lambda th: problem.residuals(th, training_only=True), problem.jacobian, theta0, cols,
-        problem.lower[cols], problem.upper[cols], problem.max_step[cols], train_entries,
-        max_iter=max_iter, tol=tol, progress=progress)
-    r = problem.residuals(out.theta) if problem.skip else out.r
-    return _Fit(theta=out.theta, r=r, loss=out.loss, iterations=out.iterations, free=list(free_names),
-                history=out.history, J=out.J)
+    w = np.asarray(train_entries, float)
+    theta = np.array(theta0, float)
+    theta[cols] = np.clip(theta[cols], problem.lower[cols], problem.upper[cols])
+
+    def full(sub):
+        th = theta.copy()
+        th[cols] = sub
+        return th
+
+    iterations, history = 0, []
+    if len(cols):
+        out = levenberg_marquardt(
+            lambda sub: w * problem.residuals(full(sub), training_only=True), theta[cols],
+            jacobian=lambda sub: w[:, None] * problem.jacobian(full(sub), cols),
+            lower=problem.lower[cols], upper=problem.upper[cols], scaled=True, ftol=_FTOL,
+            max_steps=max_iter, rtol=_RTOL, atol=_ATOL, progress=progress)
+        if not out.unhealthy_start:
+            theta, iterations, history = full(out.y), out.iterations, out.losses
+    r = problem.residuals(theta)
+    loss = float(np.sum(np.where(w > 0, w * r, 0.0) ** 2))  # held-out entries may be NaN (an unstable forecast)
+    if not np.isfinite(loss):
+        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
+                          "use more substeps or a better initial guess")
+    return _Fit(theta=theta, r=r, loss=loss, iterations=iterations, free=list(free_names),
+                history=history or [loss])
 
 
 def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 
 __all__ = [
     "Range",
@@ -79,28 +78,19 @@ class Transform(eqx.Module):
         """Bounds of the optimisation variable for bounded solvers (default: none)."""
         return -math.inf, math.inf
 
-    def max_step(self, value) -> np.ndarray:
-        """The largest change per solver iteration a trust region allows, elementwise in
-        optimisation units, for a parameter at physical ``value`` (default: ten times its
-        magnitude, at least 1)."""
-        return np.maximum(10.0 * np.abs(np.asarray(value, float)), 1.0)
-
     def needs_positive(self) -> bool:
         """Whether the physical value must be > 0 to be mapped (log spaces)."""
         return False
 
 
 class Log10(Transform):
-    """``y = log10(value)``: moduli, viscosities, densities (PAC-NeRF's space); one decade per step at most."""
+    """``y = log10(value)``: moduli, viscosities, densities (PAC-NeRF's space)."""
 
     def to_unconstrained(self, value):
         return jnp.log10(value)
 
     def from_unconstrained(self, y):
         return 10.0**y
-
-    def max_step(self, value) -> np.ndarray:
-        return np.ones(np.shape(value))
 
     def needs_positive(self) -> bool:
         return True
@@ -110,7 +100,7 @@ class TanhBounded(Transform):
     """``value = mid + half tanh((y - mid) / half)`` on ``(lo, hi)`` (PAC-NeRF's Poisson ratio).
 
     Bounded solvers keep ``y`` within ``mid ± 2.5 half``, out of the tanh's saturation where
-    its slope vanishes; a step changes ``y`` by at most half the interval.
+    its slope vanishes.
     """
 
     lo: float
@@ -131,8 +121,6 @@ class TanhBounded(Transform):
         mid, half = self._mid_half()
         return mid - 2.5 * half, mid + 2.5 * half
 
-    def max_step(self, value) -> np.ndarray:
-        return np.full(np.shape(value), 0.5)
 
 
 class Linear(Transform):

@@ -1,13 +1,16 @@
 """The solvers of the identification core.
 
 * :func:`levenberg_marquardt`: optimistix's Levenberg–Marquardt algorithm run on the host over
-  one compiled residual-and-Jacobian function (forward mode), residuals scaled to a unit
-  starting loss, with a Gauss–Newton test of what a stall means (stationary point, the loss's
-  round-off floor, or a rough loss to escape by line search).
-* :func:`bounded_levenberg_marquardt`: the same damping idea on host NumPy with bounds (an
-  active set) and a per-parameter trust region, for discovery, whose extension parameters have
-  their null values on bounds (a drag, a friction or a restitution cannot be negative; the
-  likelihood-ratio test is one-sided there) — optimistix's solver has no bounds.
+  residuals and their Jacobian (one compiled forward-mode function for a JAX residual, or the
+  caller's host functions), residuals scaled to a unit starting loss, with a Gauss–Newton test
+  of what a stall means (stationary point, the loss's round-off floor, or a rough loss to escape
+  by line search). It is the one least-squares solver of ``fit`` and ``discover``. Discovery
+  adds options: bounds (an active set that pins a parameter on the bound its step crosses, so
+  it can stop exactly there: extension parameters have their null values on bounds, a drag, a
+  friction or a restitution cannot be negative, and the likelihood-ratio test is one-sided
+  there; optimistix's solver has no bounds), Marquardt's scaling of the damping and a stop on
+  a small relative decrease of the loss. Without them, none of their code runs: ``fit``'s
+  iterates are the unbounded algorithm's, step for step.
 * :func:`bfgs` (optimistix) and :func:`adam` (optax, PAC-NeRF's optimiser) on the scalar loss.
 
 Each returns a :class:`SolverOutcome`.
@@ -27,7 +30,6 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..errors import JaxmpmError
 from .parameters import ADAM_LEARNING_RATES, leaf_name
 
 __all__ = [
@@ -38,8 +40,6 @@ __all__ = [
     "at_round_off_floor",
     "gauss_newton_escape",
     "levenberg_marquardt",
-    "bounded_levenberg_marquardt",
-    "BoundedFit",
     "bfgs",
     "adam",
 ]
@@ -106,11 +106,41 @@ def gauss_newton_step(rj, flat, rtol) -> tuple[np.ndarray | None, bool]:
     return _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
 
 
-def _gauss_newton_from(r, J, y, rtol) -> tuple[np.ndarray | None, bool]:
-    """:func:`gauss_newton_step` from residuals ``r`` and Jacobian ``J`` already evaluated at ``y``."""
+def _projected(solve: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], J: np.ndarray, r: np.ndarray,
+               y: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """The point ``y + step`` of a linearised step kept within ``bounds = (lower (P,), upper (P,))``.
+
+    ``solve(J_free (M, F), r_free (M,), free (P,) bool) -> (F,)`` is the step of the free
+    parameters for the residuals ``r_free`` (``r`` plus what the pinned parameters' steps
+    change). An active set: a free parameter whose step would leave the box is pinned on the
+    bound it crosses (it stays put if already on it) and the others are solved again given
+    that, until none leaves; so a parameter stops exactly on its bound and the others move as
+    the linear model wants them to with it there. A non-finite step comes back non-finite
+    (a rejected trial)."""
+    lower, upper = bounds
+    free = np.ones(y.shape, bool)
+    fixed = y.copy()  # where the pinned parameters go: onto their bounds
+    while True:
+        step = np.where(free, 0.0, fixed - y)
+        if free.any():
+            step[free] = solve(J[:, free], r + J[:, ~free] @ step[~free], free)
+        point = np.where(free, y + step, fixed)
+        clipped = np.clip(point, lower, upper)
+        out = free & (clipped != point)
+        if not out.any():
+            return point
+        fixed = np.where(out, clipped, fixed)
+        free &= ~out
+
+
+def _gauss_newton_from(r, J, y, rtol,
+                       bounds: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray | None, bool]:
+    """:func:`gauss_newton_step` from residuals ``r`` and Jacobian ``J`` already evaluated at
+    ``y``; within ``bounds`` (:func:`_projected`) when given."""
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
         return None, False
-    delta = np.linalg.lstsq(J, -r, rcond=None)[0]
+    solve = lambda A, b, free=None: np.linalg.lstsq(A, -b, rcond=None)[0]  # noqa: E731
+    delta = solve(J, r) if bounds is None else _projected(solve, J, r, y, bounds) - y
     return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
 
 
@@ -146,7 +176,8 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
     return promised <= noise
 
 
-def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None):
+def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None,
+                        bounds: tuple[np.ndarray, np.ndarray] | None = None):
     """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
 
     A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
@@ -158,18 +189,20 @@ def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None):
     else ``(None, verdict)``: ``"stationary"`` (the test of :func:`gauss_newton_step`),
     ``"floor"`` (no length helped and the step promises less than the loss's round-off noise,
     :func:`at_round_off_floor`) or ``"rough"`` (stuck away from a stationary point).
-    ``r, J`` at ``flat`` are evaluated unless given.
+    ``r, J`` at ``flat`` are evaluated unless given. With ``bounds`` the step and the trial
+    points stay within them (:func:`_projected`).
     """
     if r is None or J is None:
         r, J = (np.asarray(a, np.float64) for a in rj(flat))
-    delta, stationary = _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol)
+    delta, stationary = _gauss_newton_from(r, J, np.asarray(flat, np.float64), rtol, bounds)
     if delta is None:
         return None, "rough"
     if stationary:
         return None, "stationary"
     y = np.asarray(flat, np.float64)
     for alpha in ESCAPE_STEPS:
-        trial = jnp.asarray(y + alpha * delta, flat.dtype)
+        point = y + alpha * delta if bounds is None else np.clip(y + alpha * delta, *bounds)
+        trial = jnp.asarray(point, flat.dtype)
         f_t = float(loss_of(trial))
         if np.isfinite(f_t) and f_t < f:
             return (trial, f_t), "rough"
@@ -201,6 +234,14 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     }[how]
 
 
+#: With ``scaled``, a parameter whose Jacobian column's norm is at most this fraction of the
+#: largest at the start is held where it is: the data carry no information about it (e.g. a
+#: slip plane's motion along itself), and a damping scaled by that norm would let it run off.
+INERT = 1e-5
+#: ... and the first damping is this fraction of each parameter's curvature ``|J_j|^2``
+#: (Marquardt's customary start: nearly a Gauss–Newton step).
+MARQUARDT_START = 1e-3
+
 #: optimistix's ClassicalTrustRegion: a step is accepted when the loss falls by at least
 #: ``TRUST_LOW`` of the decrease the linear model predicts, and the step size (the inverse of
 #: the damping) grows by ``TRUST_GROW`` when it falls by ``TRUST_HIGH`` of it, or shrinks by
@@ -208,14 +249,15 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
 TRUST_LOW, TRUST_HIGH, TRUST_GROW, TRUST_SHRINK = 0.01, 0.99, 3.5, 0.25
 
 
-def _damped_step(r: np.ndarray, J: np.ndarray, step_size: float, eps: float) -> np.ndarray:
-    """The damped Gauss–Newton step ``argmin |J d + r|^2 + |d|^2 / step_size`` (a least-squares
-    solve of ``[J; I/sqrt(step_size)] d = [-r; 0]``), NaN where ``r`` or ``J`` is not finite."""
+def _damped_step(r: np.ndarray, J: np.ndarray, step_size: float, eps: float, D: np.ndarray | None = None) -> np.ndarray:
+    """The damped Gauss–Newton step ``argmin |J d + r|^2 + |D d|^2 / step_size`` (a least-squares
+    solve of ``[J; D/sqrt(step_size)] d = [-r; 0]``; ``D (P,)`` a diagonal scaling, the identity
+    when ``None``), NaN where ``r`` or ``J`` is not finite."""
     p = J.shape[1]
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
         return np.full(p, np.nan)
     damping = 1.0 / step_size if step_size > eps else np.finfo(np.float64).max ** 0.5
-    A = np.vstack([J, math.sqrt(damping) * np.eye(p)])
+    A = np.vstack([J, math.sqrt(damping) * (np.eye(p) if D is None else np.diag(D))])
     return np.linalg.lstsq(A, np.concatenate([-r, np.zeros(p)]), rcond=None)[0]
 
 
@@ -225,8 +267,38 @@ def _cauchy_converged(rtol: float, atol: float, y, dy, r, dr) -> bool:
     return bool(np.max(np.abs(dy) / (atol + rtol * np.abs(y))) < 1 and np.max(np.abs(dr) / (atol + rtol * np.abs(r))) < 1)
 
 
-def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offset) -> SolverOutcome:
-    """Levenberg–Marquardt on ``residuals(y) -> (M,)`` with forward-mode Jacobians.
+def levenberg_marquardt(
+    residuals: Callable,
+    y0: Any,
+    *,
+    max_steps: int,
+    rtol: float,
+    atol: float,
+    progress: Callable[[int, float], None] | None = None,
+    offset: int = 0,
+    jacobian: Callable[[np.ndarray], np.ndarray] | None = None,
+    lower: np.ndarray | None = None,
+    upper: np.ndarray | None = None,
+    ftol: float | None = None,
+    scaled: bool = False,
+) -> SolverOutcome:
+    """Levenberg–Marquardt on ``residuals(y) -> (M,)``, optionally within bounds.
+
+    Arguments:
+        residuals, y0: without ``jacobian``, a JAX function of the parameter pytree ``y0``
+            (fit's path; the Jacobian by forward mode, :func:`residuals_and_jacobian`); with
+            it, a host function ``(P,) -> (M,)`` of the float64 vector ``y0 (P,)``.
+        jacobian: ``(P,) -> (M, P)`` of host residuals, evaluated only at accepted points.
+        lower, upper: ``(P,)`` bounds of the flattened parameters (optimisation units; ±inf or
+            ``None`` where there is none); ``y0`` is clipped into them.
+        max_steps: trial points (rejected ones included); ``rtol``, ``atol``: the tolerances.
+        progress: ``progress(offset + iteration, loss)`` every iteration.
+        ftol: an accepted step that lowers the loss by less than this fraction also passes
+            the tolerance test (then checked like the Cauchy test's pass).
+        scaled: damp each parameter by its own curvature (Marquardt: ``D = |J_j|`` at the
+            start, first damping :data:`MARQUARDT_START` of it) instead of optimistix's
+            identity, and hold the parameters the data do not see (:data:`INERT`): invariant
+            to the parameters' units, for parameters of unrelated kinds.
 
     The algorithm is optimistix's ``LevenbergMarquardt`` (a damped Gauss–Newton descent in a
     classical trust region, :data:`TRUST_LOW` ...; Cauchy termination), run on the host over
@@ -247,15 +319,46 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     instead of spending five more trials). A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
-    step is within tolerance. ``progress(offset + iteration, loss)`` is called every iteration.
+    step is within tolerance.
+
+    With bounds, every step (damped, Gauss–Newton, escape) is taken with the active set of
+    :func:`_projected` (parameters pinned on the bounds they would cross), so the stop tests
+    measure the constrained Gauss–Newton step: a minimum on a bound is a stationary point, and
+    a trial is accepted only where the linear model promises a decrease. Without bounds none
+    of this runs (the iterates are the unbounded algorithm's, step for step).
+    ``y`` of the outcome is a pytree like ``y0`` (JAX path) or the float64 vector ``(P,)``.
     """
     clock = time.perf_counter()
-    rj, flat0, unravel = residuals_and_jacobian(residuals, y0)
-    dtype = flat0.dtype
-    eps = float(jnp.finfo(dtype).eps)
+    if jacobian is None:
+        rj, flat0, unravel = residuals_and_jacobian(residuals, y0)
+        dtype = flat0.dtype
+        loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if an escape needs it
+        result = lambda v: unravel(jnp.asarray(v, dtype))  # noqa: E731
+    else:
+        flat0, dtype = np.asarray(y0, np.float64), jnp.result_type(float)
 
-    def evaluate(y):
-        return tuple(np.asarray(a, np.float64) for a in rj(jnp.asarray(y, dtype)))
+        def rj(flat):  # the residuals, and the Jacobian when asked for
+            v = np.asarray(flat, np.float64)
+            return residuals(v), lambda: jacobian(v)
+
+        def loss_of(v):
+            return float(np.sum(np.asarray(residuals(np.asarray(v, np.float64)), np.float64) ** 2))
+
+        result = lambda v: np.asarray(v, np.float64)  # noqa: E731
+    eps = float(jnp.finfo(dtype).eps)
+    bounds = None
+    if lower is not None or upper is not None:
+        shape = np.shape(flat0)
+        bounds = (np.broadcast_to(np.asarray(-np.inf if lower is None else lower, np.float64), shape),
+                  np.broadcast_to(np.asarray(np.inf if upper is None else upper, np.float64), shape))
+        flat0 = np.clip(np.asarray(flat0, np.float64), *bounds)
+
+    def evaluate(y):  # r (M,) and J (M, P), or a function returning it (host residuals)
+        r, J = rj(jnp.asarray(y, dtype))
+        return np.asarray(r, np.float64), J
+
+    def matrix(J) -> np.ndarray:
+        return np.asarray(J() if callable(J) else J, np.float64)
 
     r_start, J_start = evaluate(flat0)
     timing = {"start_s": time.perf_counter() - clock}
@@ -263,12 +366,12 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
         return SolverOutcome(y0, [], 0, False, "unhealthy at the starting point", unhealthy_start=True, timing=timing)
     f0 = float(r_start @ r_start)
     scale = 1.0 / math.sqrt(f0) if 0.0 < f0 < math.inf else 1.0
-    loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if an escape needs it
 
     y = np.asarray(flat0, np.float64)  # the last accepted point ...
     r = J = None  # ... its scaled residuals and Jacobian (None before the first evaluation)
-    y_eval, evaluated = y, (r_start * scale, J_start * scale)  # the trial point (and its evaluation, when known)
+    y_eval, evaluated = y, (r_start * scale, J_start)  # the trial point (and its evaluation, when known)
     step_size, first, since_accept = 1.0, True, 0
+    D = None  # the damping's diagonal scaling (None: the identity)
     losses = [f0]
     converged, stalled, succeeded, verdict, iterations = False, False, False, "rough", 0
     escapes, rejected, floor_checks, at_floor = 0, 0, 0, False
@@ -276,7 +379,11 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     steps_s, checks_s = [], 0.0
     for iterations in range(1, max_steps + 1):
         t_step = time.perf_counter()
-        r_e, J_e = evaluated if evaluated is not None else (a * scale for a in evaluate(y_eval))
+        if evaluated is None:
+            r_e, J_e = evaluate(y_eval)
+            r_e = r_e * scale
+        else:
+            r_e, J_e = evaluated
         evaluated = None
         f_e = float(r_e @ r_e)
         if first:
@@ -285,18 +392,33 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
             predicted = 0.5 * (float(np.sum((J @ (y_eval - y) + r) ** 2)) - float(r @ r))
             change = 0.5 * (f_e - float(r @ r))
             accept = bool(change <= TRUST_LOW * predicted)  # False for a NaN loss
+            if bounds is not None:  # a projected step may promise no decrease: never accept a rise for it
+                accept = accept and predicted < 0
             good = bool(change < TRUST_HIGH * predicted and predicted < 0)
         step_size *= (TRUST_GROW if good else 1.0) if accept else TRUST_SHRINK
         if accept:
             r_prev = np.zeros_like(r_e) if r is None else r
             succeeded = _cauchy_converged(rtol, atol, y_eval, y_eval - y, r_e, r_e - r_prev)
+            if ftol is not None and not first:  # or the loss fell by less than ftol (relative)
+                succeeded = succeeded or float(r @ r) - f_e < ftol * float(r @ r)
             if not first:
                 losses.append(f_e / scale**2)
-            y, r, J, since_accept = y_eval, r_e, J_e, 0
+            y, r, J, since_accept = y_eval, r_e, matrix(J_e) * scale, 0
         else:
             succeeded, since_accept, rejected = False, since_accept + 1, rejected + 1
         first = False
-        y_eval = y + _damped_step(r, J, step_size, eps)
+        if scaled and D is None:  # the Jacobian's column norms at the start (the scaled residuals')
+            norms = np.linalg.norm(J, axis=0)
+            D = math.sqrt(MARQUARDT_START) * norms
+            inert = norms <= INERT * float(np.max(norms, initial=0.0))
+            if inert.any():  # held where they are: their bounds close on them
+                lo, hi = bounds if bounds is not None else (np.full(y.shape, -np.inf), np.full(y.shape, np.inf))
+                bounds = (np.where(inert, y, lo), np.where(inert, y, hi))
+        if bounds is None:
+            y_eval = y + _damped_step(r, J, step_size, eps, D)
+        else:
+            y_eval = _projected(lambda A, b, free: _damped_step(b, A, step_size, eps, None if D is None else D[free]),
+                                J, r, y, bounds)
         steps_s.append(time.perf_counter() - t_step)
         if progress is not None:
             progress(offset + iterations, losses[-1])
@@ -309,7 +431,7 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
             # so waiting for more rejections would only spend rollouts
             t_check = time.perf_counter()
             at_y = (r / scale, J / scale)
-            delta, _ = _gauss_newton_from(*at_y, y, rtol)
+            delta, _ = _gauss_newton_from(*at_y, y, rtol, bounds)
             promised = float(np.sum((J @ delta) ** 2)) if delta is not None else math.inf  # scaled loss units
             probe = promised <= FLOOR_GATE * float(r @ r)
             floor_checks += probe
@@ -322,7 +444,7 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
             t_check = time.perf_counter()
             flat = jnp.asarray(y, dtype)
             at_y = (r / scale, J / scale)
-            found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol, *at_y)
+            found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol, *at_y, bounds=bounds)
             checks_s += time.perf_counter() - t_check
             if found is not None and escapes < MAX_ESCAPES:
                 escapes += 1
@@ -334,7 +456,8 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
             converged = verdict in STATIONARY
             break
     if r is None:  # the iteration limit came right after an escape: its point is the result
-        y, (r, J) = y_eval, (a * scale for a in evaluate(y_eval))
+        r_e, J_e = evaluate(y_eval)
+        y, r, J = y_eval, r_e * scale, matrix(J_e) * scale
     unhealthy = False
     if at_floor:
         how = "floor"
@@ -348,13 +471,12 @@ def levenberg_marquardt(residuals, y0, *, max_steps, rtol, atol, progress, offse
     else:  # the limit; converged all the same if the Gauss-Newton step is within tolerance
         t_check = time.perf_counter()
         at_y = (r / scale, J / scale)
-        converged = _gauss_newton_from(*at_y, y, rtol)[1]
+        converged = _gauss_newton_from(*at_y, y, rtol, bounds)[1]
         checks_s += time.perf_counter() - t_check
         how = "cap-stationary" if converged else "cap"
     timing.update(_step_timing(steps_s), checks_s=checks_s, rejected_steps=rejected, escapes=escapes,
                   floor_checks=floor_checks)
-    y_out = unravel(jnp.asarray(y, dtype))
-    return SolverOutcome(y_out, losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy,
+    return SolverOutcome(result(y), losses, iterations, converged, _lm_message(how, iterations, max_steps), unhealthy,
                          jacobian=(rj, at_y), timing=timing)
 
 
@@ -492,113 +614,3 @@ def adam(
     else:
         message = f"did not converge within {max_steps} iterations (Adam; the lowest-loss iterate is returned)"
     return SolverOutcome(y_out, losses, iterations, converged, message, unhealthy, timing=_step_timing(steps_s))
-
-
-
-
-
-
-@dataclass
-class BoundedFit:
-    """What :func:`bounded_levenberg_marquardt` returns: the parameter vector, the weighted
-    residuals' unweighted values ``r`` and loss there, iterations, the loss history and the
-    last Jacobian (columns of the free parameters)."""
-
-    theta: np.ndarray
-    r: np.ndarray
-    loss: float
-    iterations: int
-    history: list
-    J: np.ndarray | None = None
-
-
-def bounded_levenberg_marquardt(
-    residuals: Callable[[np.ndarray], np.ndarray],
-    jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    theta0: np.ndarray,
-    cols: np.ndarray,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    max_step: np.ndarray,
-    weights: np.ndarray,
-    *,
-    max_iter: int = 25,
-    tol: float = 1e-5,
-    progress: Callable[[int, float], None] | None = None,
-) -> BoundedFit:
-    """Levenberg–Marquardt with Marquardt scaling and bounds, on host arrays.
-
-    Arguments:
-        residuals: ``theta (P,) -> r (M,)``; jacobian: ``(theta, cols) -> (M, len(cols))``.
-        theta0: the starting vector; only its entries ``cols`` are moved.
-        lower, upper, max_step: ``(len(cols),)`` bounds of the free entries and the largest
-            change of each per iteration (a per-parameter trust region).
-        weights: ``(M,)`` weight of each residual entry (0 drops it, e.g. held-out data).
-
-    Bounds are kept by projection with an active set: a parameter at a bound whose step points
-    outwards is pinned for that step. Directions the data carry no information about
-    (Jacobian column ~0) stay where they are. Stops when a step lowers the loss by less than
-    ``tol`` (relative) or no damping up to ``4^10`` times larger finds a lower loss.
-
-    Raises:
-        JaxmpmError: the loss is not finite at ``theta0`` (an unstable simulation).
-    """
-    lo, hi, cap = lower, upper, max_step
-    theta = np.array(theta0, float)
-    theta[cols] = np.clip(theta[cols], lo, hi)
-    w = np.asarray(weights, float)
-    r = residuals(theta)
-    loss = float(np.sum((w * r) ** 2))
-    if not np.isfinite(loss):
-        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
-                          "use more substeps or a better initial guess")
-    history = [loss]
-    if len(cols) == 0:  # nothing to fit
-        return BoundedFit(theta=theta, r=r, loss=loss, iterations=0, history=history)
-    lam = 1e-3
-    it = 0
-    J = None
-    for it in range(1, max_iter + 1):
-        J = jacobian(theta, cols)
-        Jw = w[:, None] * J
-        A = Jw.T @ Jw
-        g = Jw.T @ (w * r)
-        diag = np.diag(A)
-        d = np.maximum(diag, 1e-12 * max(np.max(diag), 1e-300))
-        informative = diag > 1e-10 * max(np.max(diag), 1e-300)
-        improved = False
-        for _ in range(10):
-            free = informative.copy()
-            for _pass in range(len(cols) + 1):
-                step = np.zeros(len(cols))
-                if free.any():
-                    Af = A[np.ix_(free, free)] + lam * np.diag(d[free])
-                    try:
-                        step[free] = -np.linalg.solve(Af, g[free])
-                    except np.linalg.LinAlgError:
-                        step[free] = -np.linalg.lstsq(Af, g[free], rcond=None)[0]
-                big = np.max(np.abs(step) / cap)
-                if big > 1.0:  # trust region: at most `cap` per parameter and iteration
-                    step = step / big
-                new = theta[cols] + step
-                out = ((new < lo) & (step < 0) & np.isclose(theta[cols], lo)) | ((new > hi) & (step > 0) & np.isclose(theta[cols], hi))
-                if not (out & free).any():
-                    break
-                free &= ~out
-            trial = theta.copy()
-            trial[cols] = np.clip(theta[cols] + step, lo, hi)
-            r_t = residuals(trial)
-            loss_t = float(np.sum((w * r_t) ** 2))
-            if np.isfinite(loss_t) and loss_t < loss:
-                rel = (loss - loss_t) / max(loss, 1e-300)
-                theta, r, loss = trial, r_t, loss_t
-                lam = max(lam / 3.0, 1e-9)
-                improved = True
-                break
-            lam *= 4.0
-        history.append(loss)
-        if progress is not None:
-            progress(it, loss)
-        if not improved or rel < tol:
-            break
-    return BoundedFit(theta=theta, r=r, loss=loss, iterations=it, history=history, J=J)
