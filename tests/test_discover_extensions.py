@@ -93,3 +93,144 @@ def test_extension_parameters_and_errors():
     np.testing.assert_allclose(np.asarray(p3["gravity"]), np.asarray(p["gravity"]) + np.array([0.0, -1.0]))
     assert "gravity" not in p3["extensions"]
     assert jnp.asarray(p3["gravity"]).dtype == jnp.asarray(p["gravity"]).dtype
+
+
+# =========================================================================== formulas and signs
+# Each test below computes the documented effect of one extension independently
+# (extensions.py's table / docs/discover.md) in a scene where it is exact, so a flipped sign,
+# a dropped factor or another formula fails it. Rollouts go through discover's ``_rollout``.
+
+#: a free body high in the domain (no collider): one particle per cell, no stress develops
+def _free(material=None, frames=6, velocity=None, bodies=None):
+    spec = block_spec(2, material or {"model": "elastic", "E": 3e3, "nu": 0.3}, dx=0.1, lo=[0.4, 0.5], hi=[0.6, 0.7],
+                      frames=frames, substeps=20, velocity=velocity, ppc=1)
+    if bodies is not None:
+        spec["bodies"] = bodies
+    return load_scene(spec)
+
+
+def _v(m, p, frames):
+    from jaxmpm.discover import _rollout
+
+    frames_, ok = _rollout(m, p, frames)
+    assert bool(ok)
+    return np.asarray(frames_.v, float), np.asarray(frames_.x, float)
+
+
+def _two_colliders():
+    spec = block_spec(2, {"model": "elastic", "E": 3e3, "nu": 0.3}, dx=0.05, lo=[0.3, 0.12], hi=[0.5, 0.27])
+    spec["colliders"] = [
+        {"type": "plane", "name": "floor", "point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "slip",
+         "restitution": 0.25},
+        {"type": "plane", "name": "wall", "point": [0.9, 0.0], "normal": [-1.0, 0.0], "contact": "friction",
+         "friction": 0.375, "restitution": 0.125},
+        {"type": "plane", "name": "roof", "point": [0.0, 0.95], "normal": [0.0, -1.0], "contact": "sticky"},
+    ]
+    return load_scene(spec)
+
+
+def test_restitution_adds_its_offset_to_each_named_collider():
+    scene = _two_colliders()
+    m, p = scene.model, scene.params
+    specs = {s.key: s for s in X.parameter_specs(m, p, "restitution")}
+    assert set(specs) == {"floor", "wall"}  # sticky colliders do not bounce
+    # the offset's bounds keep e = base + offset in [0, 1]
+    assert (specs["floor"].lower, specs["floor"].upper) == (-0.25, 0.75)
+    assert (specs["wall"].lower, specs["wall"].upper) == (-0.125, 0.875)
+    m2, p2 = X.prepare(m, X.enable(m, p, ["restitution"], {"restitution": {"floor": 0.5, "wall": -0.0625}}))
+    e = [float(c["restitution"]) for c in p2["colliders"]]
+    assert e == [0.75, 0.0625, 0.0]
+    assert [float(c["friction"]) for c in p2["colliders"]] == [float(c["friction"]) for c in p["colliders"]]
+    assert [c.contact for c in m2.colliders] == ["slip", "friction", "sticky"]  # the contact law is kept
+
+
+def test_collider_friction_adds_coulomb_friction_and_makes_slip_colliders_coulomb():
+    scene = _two_colliders()
+    m, p = scene.model, scene.params
+    specs = {s.key: s for s in X.parameter_specs(m, p, "collider_friction")}
+    assert set(specs) == {"floor", "wall"}
+    assert specs["floor"].lower == 0.0 and specs["wall"].lower == -0.375  # mu = base + offset >= 0
+    m2, p2 = X.prepare(m, X.enable(m, p, ["collider_friction"], {"collider_friction": {"floor": 0.5, "wall": 0.25}}))
+    assert [float(c["friction"]) for c in p2["colliders"]] == [0.5, 0.625, float(p["colliders"][2]["friction"])]
+    assert [float(c["restitution"]) for c in p2["colliders"]] == [0.25, 0.125, 0.0]
+    assert [c.contact for c in m2.colliders] == ["friction", "friction", "sticky"]
+    assert [c.contact for c in m.colliders] == ["slip", "friction", "sticky"]  # the input model is not changed
+
+
+def test_moving_collider_translates_the_plane_by_v_t():
+    scene = _two_colliders()
+    m, p = scene.model, scene.params
+    assert [s.key for s in X.parameter_specs(m, p, "moving_collider")] == ["floor", "wall", "roof"]
+    vc = np.array([0.2, 0.3])
+    m2, _ = X.prepare(m, X.enable(m, p, ["moving_collider"], {"moving_collider": {"floor": vc}}))
+    pts = jnp.asarray([[0.3, 0.2], [0.7, 0.05], [0.5, 0.5]], jnp.float32)
+    for t in (0.0, 0.25, 1.0):
+        sd, n = m2.colliders[0].signed_distance(pts, jnp.asarray(t, jnp.float32))
+        # the floor y = 0.1 moves up by 0.3 t (its x motion does not change a horizontal plane's distance)
+        np.testing.assert_allclose(np.asarray(sd), np.asarray(pts)[:, 1] - (0.1 + 0.3 * t), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(n), [[0.0, 1.0]] * 3, atol=1e-6)
+        v = m2.colliders[0].velocity_at(pts, jnp.asarray(t, jnp.float32))
+        np.testing.assert_allclose(np.asarray(v), np.broadcast_to(vc, (3, 2)), atol=1e-6)
+        c, _ = m2.colliders[0].rigid_transform(jnp.asarray(t, jnp.float32))
+        np.testing.assert_allclose(np.asarray(c), np.array([0.0, 0.1]) + vc * t, atol=1e-6)
+    # the wall (no offset given: null) stays where it is
+    sd, _ = m2.colliders[1].signed_distance(pts, jnp.asarray(1.0, jnp.float32))
+    np.testing.assert_allclose(np.asarray(sd), 0.9 - np.asarray(pts)[:, 0], atol=1e-6)
+
+
+def test_gravity_delta_adds_to_the_free_fall_acceleration():
+    scene = _free(frames=4)
+    m, p = scene.model, scene.params
+    dg = np.array([0.5, -1.5])
+    v, _ = _v(m, X.enable(m, p, ["gravity"], {"gravity": {"delta": dg}}), 4)
+    t = np.arange(4) * m.frame_dt
+    expected = t[:, None] * (np.array([0.0, -9.8]) + dg)  # a free body: v = (g + dg) t, every particle
+    np.testing.assert_allclose(v, np.broadcast_to(expected[:, None, :], v.shape), rtol=1e-4, atol=1e-5)
+
+
+def test_initial_velocity_adds_delta_and_a_rigid_spin_about_the_body_centre():
+    from jaxmpm.step import _start
+
+    bodies = [
+        {"shape": "box", "lo": [0.2, 0.5], "hi": [0.4, 0.7], "velocity": [0.1, 0.0],
+         "material": {"model": "elastic", "E": 3e3, "nu": 0.3}, "ppc": 1},
+        {"shape": "box", "lo": [0.6, 0.3], "hi": [0.8, 0.6], "velocity": [0.0, -0.2],
+         "material": {"model": "elastic", "E": 3e3, "nu": 0.3}, "ppc": 1},
+    ]
+    scene = _free(bodies=bodies)
+    m, p = scene.model, scene.params
+    dv, w = np.array([0.3, -0.4]), 2.0
+    _, _, state = _start(m, X.enable(m, p, ["initial_velocity"], {"initial_velocity": {"delta": dv, "spin": [w]}}), None)
+    x, v = np.asarray(state.x, float), np.asarray(state.v, float)
+    for sl, v0 in zip(m.body_slices(), ([0.1, 0.0], [0.0, -0.2])):
+        r = x[sl] - x[sl].mean(axis=0)  # about each body's own centre
+        expected = np.array(v0) + dv + w * np.stack([-r[:, 1], r[:, 0]], axis=1)  # w e_z x r, counter-clockwise
+        np.testing.assert_allclose(v[sl], expected, rtol=1e-5, atol=1e-6)
+        assert np.allclose(v[sl].mean(axis=0), np.array(v0) + dv, atol=1e-6)  # spin adds no momentum
+
+
+def test_drag_relaxes_free_fall_to_the_implicit_update_and_terminal_speed():
+    scene = _free(frames=7)
+    m, p = scene.model, scene.params
+    k1, k2 = 20.0, 2.0
+    n = 6 * m.substeps
+    for lin, quad in ((k1, 0.0), (0.0, k2), (k1, k2)):
+        v, _ = _v(m, X.enable(m, p, ["drag"], {"drag": {"linear": lin, "quadratic": quad}}), 7)
+        vy = v[:, :, 1]
+        # the documented update on the grid, after gravity: v <- (v + g dt) / (1 + dt (k1 + k2 |v + g dt|))
+        u, expected = 0.0, [0.0]
+        for i in range(n):
+            u = u - 9.8 * m.dt
+            u = u / (1.0 + m.dt * (lin + quad * abs(u)))
+            if (i + 1) % m.substeps == 0:
+                expected.append(u)
+        np.testing.assert_allclose(vy, np.broadcast_to(np.array(expected)[:, None], vy.shape), rtol=2e-4, atol=1e-6)
+        np.testing.assert_allclose(v[:, :, 0], 0.0, atol=1e-6)
+        # it slows the fall: below free fall, towards the terminal speed from below
+        terminal = 9.8 / lin if quad == 0 else (np.sqrt(9.8 / quad) if lin == 0 else
+                                                (-lin + np.sqrt(lin * lin + 4 * quad * 9.8)) / (2 * quad))
+        assert np.all(np.abs(vy[1:]) < 9.8 * np.arange(1, 7)[:, None] * m.frame_dt)
+        assert np.all(np.abs(vy) < terminal) and np.all(np.diff(np.abs(vy[:, 0])) > 0)
+    # linear drag over 6 frames (k t = 5): within 1 % of the terminal speed g / k
+    v, _ = _v(m, X.enable(m, p, ["drag"], {"drag": {"linear": k1, "quadratic": 0.0}}), 7)
+    np.testing.assert_allclose(v[-1, :, 1], -9.8 / k1, rtol=1e-2)
