@@ -234,3 +234,118 @@ def test_drag_relaxes_free_fall_to_the_implicit_update_and_terminal_speed():
     # linear drag over 6 frames (k t = 5): within 1 % of the terminal speed g / k
     v, _ = _v(m, X.enable(m, p, ["drag"], {"drag": {"linear": k1, "quadratic": 0.0}}), 7)
     np.testing.assert_allclose(v[-1, :, 1], -9.8 / k1, rtol=1e-2)
+
+
+def _random_state(m, p, seed):
+    """The initial state with random F (det > 0), C and aux, and a random Kirchhoff stress."""
+    import equinox as eqx
+
+    from jaxmpm.model import initial_state
+
+    rng = np.random.default_rng(seed)
+    n = m.num_particles
+    F = np.eye(2) + 0.2 * rng.standard_normal((n, 2, 2))
+    C = 3.0 * rng.standard_normal((n, 2, 2))
+    aux = rng.uniform(0.7, 1.3, n)
+    tau = 100.0 * rng.standard_normal((n, 2, 2))
+    state = initial_state(m, p)
+    state = eqx.tree_at(lambda s: (s.C, s.F, s.aux), state, (jnp.asarray(C, jnp.float32), jnp.asarray(F, jnp.float32),
+                                                          jnp.asarray(aux, jnp.float32)))
+    return state, F, C, aux, tau
+
+
+_TWO_BODIES = [
+    {"shape": "box", "lo": [0.2, 0.5], "hi": [0.4, 0.7], "material": {"model": "elastic", "E": 3e3, "nu": 0.3}, "ppc": 1},
+    {"shape": "box", "lo": [0.6, 0.3], "hi": [0.8, 0.6], "material": {"model": "newtonian", "mu": 1.0, "kappa": 1e3},
+     "ppc": 1},
+]
+
+
+def test_rate_dependence_adds_eta_J_sym_C_to_the_kirchhoff_stress():
+    scene = _free(bodies=_TWO_BODIES)
+    m, p = scene.model, scene.params
+    state, F, C, aux, tau = _random_state(m, p, 0)
+    eta = 7.0
+    pe = X.enable(m, p, ["rate_dependence"], {"rate_dependence": {"viscosity": eta}})
+    out = np.asarray(X.stress(m, pe, state, state.F, state.aux, jnp.asarray(tau, jnp.float32)), float)
+    # J: det F for solids, the evolved volume ratio (aux) for the J-only Newtonian fluid
+    J = np.concatenate([np.linalg.det(F[m.body_slices()[0]]), aux[m.body_slices()[1]]])
+    expected = tau + eta * J[:, None, None] * 0.5 * (C + np.swapaxes(C, 1, 2))
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-3)
+
+
+def test_rate_dependence_dissipates_an_expansion():
+    """The viscous stress resists the deformation rate: a soft body expanding from rest shape
+    loses kinetic energy faster with eta > 0 (a flipped sign would feed it)."""
+    import equinox as eqx
+
+    from jaxmpm.model import initial_state
+    from jaxmpm.step import simulate
+
+    scene = load_scene(block_spec(2, {"model": "elastic", "E": 10.0, "nu": 0.3}, dx=0.05, lo=[0.4, 0.4], hi=[0.6, 0.6],
+                                  frames=2, substeps=20, gravity=[0.0, 0.0]))
+    m, p = scene.model, scene.params
+    s0 = initial_state(m, p)
+    s0 = eqx.tree_at(lambda s: s.v, s0, 2.0 * (s0.x - jnp.mean(s0.x, axis=0)))
+
+    def kinetic(pp):
+        tr = simulate(m, pp, state=s0, frames=2, checkpoint=None)
+        return float(jnp.sum(0.5 * tr.final.mass * jnp.sum(tr.final.v ** 2, axis=-1)))
+
+    k_base = kinetic(X.enable(m, p, ["rate_dependence"]))
+    k_visc = kinetic(X.enable(m, p, ["rate_dependence"], {"rate_dependence": {"viscosity": 50.0}}))
+    assert k_visc < 0.6 * k_base, (k_visc, k_base)
+
+
+def test_heterogeneity_scales_the_stress_by_ten_to_the_g_dot_xi():
+    scene = _free(bodies=_TWO_BODIES)
+    m, p = scene.model, scene.params
+    state, F, C, aux, tau = _random_state(m, p, 1)
+    g, eta = np.array([0.5, -0.25]), 3.0
+    pe = X.enable(m, p, ["heterogeneity", "rate_dependence"],
+                  {"heterogeneity": {"gradient": g}, "rate_dependence": {"viscosity": eta}})
+    out = np.asarray(X.stress(m, pe, state, state.F, state.aux, jnp.asarray(tau, jnp.float32)), float)
+    J = np.concatenate([np.linalg.det(F[m.body_slices()[0]]), aux[m.body_slices()[1]]])
+    visc = tau + eta * J[:, None, None] * 0.5 * (C + np.swapaxes(C, 1, 2))  # eta is scaled too
+    x0 = np.asarray(state.x, float)
+    for sl in m.body_slices():
+        lo, hi = x0[sl].min(axis=0), x0[sl].max(axis=0)
+        xi = (x0[sl] - (lo + hi) / 2) / ((hi - lo) / 2)  # [-1, 1] over each body's own box
+        assert np.isclose(xi.min(), -1) and np.isclose(xi.max(), 1)
+        np.testing.assert_allclose(out[sl], visc[sl] * 10.0 ** (xi @ g)[:, None, None], rtol=1e-5, atol=1e-3)
+    # the corner with xi = (1, -1) is 10^0.75 times stiffer
+    i = np.argmax(x0[:, 0] - x0[:, 1])
+    assert np.allclose(out[i], visc[i] * 10**0.75, rtol=1e-5)
+
+
+def test_damping_divides_C_by_1_plus_dt_zeta_each_step_and_keeps_momentum():
+    from jaxmpm.model import initial_state
+    from jaxmpm.step import step
+
+    scene = load_scene(block_spec(2, {"model": "elastic", "E": 3e3, "nu": 0.3}, dx=0.05, lo=[0.4, 0.4], hi=[0.6, 0.6],
+                                  frames=3, substeps=20))
+    m, p = scene.model, scene.params
+    zeta = 0.5 / m.dt  # dt zeta = 1/2: 1/(1 + 1/2) = 0.667, exp(-1/2) = 0.607
+    base = X.enable(m, p, ["damping", "initial_velocity"], {"initial_velocity": {"spin": [3.0]}})
+    damped = X.enable(m, p, ["damping", "initial_velocity"], {"initial_velocity": {"spin": [3.0]},
+                                                               "damping": {"rate": zeta}})
+    s0 = X.initial_velocity(m, base, initial_state(m, base))
+    a, b = step(m, base, s0), step(m, damped, s0)
+    Ca, Cb = np.asarray(a.C, float), np.asarray(b.C, float)
+    assert np.max(np.abs(Ca)) > 1.0  # the spin gives an affine field to damp
+    np.testing.assert_allclose(Cb, Ca / (1.0 + m.dt * zeta), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(Cb, Ca * np.exp(-m.dt * zeta), rtol=1e-2, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(b.v), np.asarray(a.v))  # G2P velocities: untouched
+    np.testing.assert_array_equal(np.asarray(b.x), np.asarray(a.x))
+    # over a rollout: the spin dies out faster, the centre of mass moves as without damping
+    va, xa = _v(m, base, 3)
+    vb, xb = _v(m, X.enable(m, p, ["damping", "initial_velocity"],
+                            {"initial_velocity": {"spin": [3.0]}, "damping": {"rate": 20.0}}), 3)
+    mass = np.asarray(s0.mass, float)
+    np.testing.assert_allclose(mass @ vb[-1] / mass.sum(), mass @ va[-1] / mass.sum(), atol=1e-5)
+
+    def spin(v, x):  # angular momentum of the particle velocities about the centre of mass
+        r = x - mass @ x / mass.sum()
+        return np.sum(mass * (r[:, 0] * v[:, 1] - r[:, 1] * v[:, 0]))
+
+    assert 0.0 < spin(vb[-1], xb[-1]) < 0.9 * spin(va[-1], xa[-1])
