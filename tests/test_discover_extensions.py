@@ -349,3 +349,34 @@ def test_damping_divides_C_by_1_plus_dt_zeta_each_step_and_keeps_momentum():
         return np.sum(mass * (r[:, 0] * v[:, 1] - r[:, 1] * v[:, 0]))
 
     assert 0.0 < spin(vb[-1], xb[-1]) < 0.9 * spin(va[-1], xa[-1])
+
+
+def test_time_offset_compares_the_model_at_t_minus_t0():
+    """Data that are the simulation delayed by two frames (observed at t = simulated at
+    t - 2 frame_dt) are matched exactly by t0 = +2 frame_dt, through discover's residuals."""
+    from jaxmpm.discover import Sequence, _Problem
+    from jaxmpm.observe import Observation
+
+    scene = _free(frames=6, velocity=[0.5, 1.0])
+    m, p = scene.model, scene.params
+    _, x = _v(m, p, 6)
+    lag, fdt = 2, m.frame_dt
+    times = (np.arange(6) + lag) * fdt
+    obs = Observation(times=times, positions=x, point_ids="particles")
+    prob = _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
+    col = prob.slices["time_offset.t0"]
+
+    def rms(t0):
+        theta = prob.initial()
+        theta[col] = t0
+        return float(np.sqrt(np.mean(prob.residuals(theta) ** 2)))
+
+    assert rms(lag * fdt) < 1e-5
+    assert rms(0.0) > 1e-3 and rms(-lag * fdt) > rms(0.0)
+    # between frames (cubic Hermite): data delayed by 1.5 frames, observed at the frame times
+    # (k + 2) frame_dt = simulated mid-frames (k + 1/2) frame_dt, on the free-fall parabola
+    mid = (x[:-1] + x[1:]) / 2 - np.array([0.0, -9.8]) * fdt**2 / 8
+    obs = Observation(times=(np.arange(5) + 2.0) * fdt, positions=mid, point_ids="particles")
+    prob = _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
+    assert rms(1.5 * fdt) < 1e-5
+    assert rms(1.0 * fdt) > 2e-3 and rms(2.0 * fdt) > 2e-3 and rms(-1.5 * fdt) > 2e-2
