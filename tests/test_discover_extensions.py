@@ -380,3 +380,52 @@ def test_time_offset_compares_the_model_at_t_minus_t0():
     prob = _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
     assert rms(1.5 * fdt) < 1e-5
     assert rms(1.0 * fdt) > 2e-3 and rms(2.0 * fdt) > 2e-3 and rms(-1.5 * fdt) > 2e-2
+
+
+def _rotation(a):
+    return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+
+def test_cohesion_moves_the_drucker_prager_apex_to_mean_stress_c():
+    """The documented yield surface with cohesion c (2D, alpha = tan(phi)/sqrt 2):
+    ||dev tau|| <= alpha (D c - tr tau); tension beyond it returns to the apex tau = c I."""
+    scene = _scene({"model": "sand", "friction_angle": 30.0}, frames=3)
+    m, p = scene.model, scene.params
+    sand, bp = m.bodies[0].material, p["bodies"][0]
+    E, nu, D = 1e6, 0.3, 2
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    alpha = np.tan(np.radians(30.0)) / np.sqrt(2.0)
+    c = 1e4
+    rng = np.random.default_rng(3)
+    # principal Hencky strains: hydrostatic tension (beyond the apex), mild tension (inside the
+    # cohesive cone, outside the cohesionless one), compression with large shear (on the cone)
+    eps = np.concatenate([np.full((4, 2), 0.02) + rng.uniform(0, 1e-4, (4, 2)),
+                          0.001 + rng.uniform(0, 1e-3, (4, 2)),
+                          -0.01 + np.array([1.0, -1.0]) * rng.uniform(0.03, 0.05, (8, 1))])
+    F = np.stack([_rotation(a) @ np.diag(np.exp(e)) @ _rotation(b).T
+                  for e, a, b in zip(eps, rng.uniform(0, 6, len(eps)), rng.uniform(0, 6, len(eps)))])
+    n = len(F)
+    args = (jnp.asarray(F, jnp.float32), jnp.zeros((n, 2, 2), jnp.float32), jnp.ones(n, jnp.float32), bp, m.dt)
+
+    def tau(cohesion):
+        pp = X.enable(m, p, ["cohesion"], {"cohesion": {"strength": cohesion}})
+        return np.asarray(X.material_update(sand, *args, pp)[2], float)
+
+    t0, tc = tau(0.0), tau(c)
+    tr = lambda t: np.trace(t, axis1=1, axis2=2)  # noqa: E731
+    dev = lambda t: np.linalg.norm(t - tr(t)[:, None, None] / D * np.eye(D), axis=(1, 2))  # noqa: E731
+    elastic = np.stack([np.diag(2 * mu * e + lam * e.sum()) for e in eps])  # the trial stress (its invariants)
+    tension, mild, shear = slice(0, 4), slice(4, 8), slice(8, None)
+    # beyond the apex: tau = c I with cohesion, 0 without
+    np.testing.assert_allclose(tc[tension], np.broadcast_to(c * np.eye(2), (4, 2, 2)), rtol=0, atol=1e-3 * c)
+    np.testing.assert_allclose(t0[tension], 0.0, atol=1e-3)
+    # mild tension: elastic (untouched) with cohesion, at the apex without
+    np.testing.assert_allclose(tr(tc[mild]), tr(elastic[mild]), rtol=1e-4)
+    np.testing.assert_allclose(dev(tc[mild]), dev(elastic[mild]), rtol=1e-3, atol=1.0)  # float32 strains: ~0.1 Pa
+    assert np.all(tr(tc[mild]) > 0) and np.all(dev(tc[mild]) < alpha * (D * c - tr(tc[mild])))
+    np.testing.assert_allclose(t0[mild], 0.0, atol=1e-3)
+    # large shear under compression: on the cone, pressure kept (the return is purely deviatoric)
+    for t, cc in ((t0, 0.0), (tc, c)):
+        np.testing.assert_allclose(tr(t[shear]), tr(elastic[shear]), rtol=1e-4)
+        np.testing.assert_allclose(dev(t[shear]), alpha * (D * cc - tr(t[shear])), rtol=1e-3)
+    assert np.all(dev(tc[shear]) > dev(t0[shear]) + 0.9 * alpha * D * c)
