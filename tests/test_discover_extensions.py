@@ -429,3 +429,20 @@ def test_cohesion_moves_the_drucker_prager_apex_to_mean_stress_c():
         np.testing.assert_allclose(tr(t[shear]), tr(elastic[shear]), rtol=1e-4)
         np.testing.assert_allclose(dev(t[shear]), alpha * (D * cc - tr(t[shear])), rtol=1e-3)
     assert np.all(dev(tc[shear]) > dev(t0[shear]) + 0.9 * alpha * D * c)
+
+
+def test_cohesive_sand_column_stands_taller():
+    """A sand column on a floor slumps without cohesion and stands with it (sign of c)."""
+    scene = load_scene(block_spec(2, {"model": "sand", "friction_angle": 30.0, "E": 1e5}, dx=0.05, lo=[0.4, 0.1], hi=[0.55, 0.4],
+                                  frames=6, substeps=20, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0],
+                                                                "contact": "friction", "friction": 0.5}))
+    m, p = scene.model, scene.params
+
+    def shape(c):
+        _, x = _v(m, X.enable(m, p, ["cohesion"], {"cohesion": {"strength": c}}), 6)
+        return np.ptp(x[:, :, 1], axis=1), np.ptp(x[:, :, 0], axis=1)  # height, width per frame
+
+    h0, w0 = shape(0.0)
+    hc, wc = shape(5e3)  # c >= 0.37 rho g h is needed at the base (rho g h = 2.9 kPa)
+    assert h0[-1] < 0.7 * h0[0] and w0[-1] > 1.5 * w0[0]  # cohesionless: slumps
+    assert hc[-1] > 0.97 * hc[0] and wc[-1] < 1.05 * wc[0]  # cohesive: stands
