@@ -1,4 +1,5 @@
-"""The extension library: null values reproduce the base model; each extension acts."""
+"""The extension library: null values reproduce the base model; each extension acts, with the
+formula and sign that extensions.py and docs/discover.md document."""
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -59,8 +60,8 @@ def test_each_extension_alone_is_bitwise_null():
     Steps, not rollouts: compiling dominates (one program per extension), and a step is the
     unit that is exact. In a compiled rollout (``lax.scan``) XLA may fuse the step differently
     around an extension's zero term: rate_dependence then moves the last bit of some
-    velocities (seen on CPU: 6e-8 m/s after 6 substeps); the rollouts of all extensions at
-    their null values are compared to 1e-6 in the test above. The scenes are tiny: the
+    velocities (seen on CPU: 6e-8 m/s after 6 substeps); the rollout with all extensions at
+    their null values is compared to 1e-6 in the test above. The scenes are tiny: the
     collider extensions on a block hitting a floor, the others on two blocks pushing into
     each other, so that stress and the affine field are non-zero."""
     from jaxmpm.step import _start, step
@@ -70,10 +71,9 @@ def test_each_extension_alone_is_bitwise_null():
     floor = load_scene(block_spec(2, material, dx=0.1, lo=[0.3, 0.12], hi=[0.5, 0.27], frames=2, substeps=3,
                                   velocity=[1.0, -3.0], ppc=1, floor=FLOOR))
     spec = block_spec(2, material, dx=0.1, frames=2, substeps=3)
-    spec["bodies"] = [{"shape": "box", "lo": [0.3, 0.5], "hi": [0.5, 0.6], "velocity": [1.0, 0.0], "material": material,
-                       "ppc": 1},
-                      {"shape": "box", "lo": [0.5, 0.5], "hi": [0.7, 0.7], "velocity": [-1.0, 0.5], "material": material,
-                       "ppc": 1}]
+    box = {"shape": "box", "material": material, "ppc": 1}
+    spec["bodies"] = [{**box, "lo": [0.3, 0.5], "hi": [0.5, 0.6], "velocity": [1.0, 0.0]},
+                      {**box, "lo": [0.5, 0.5], "hi": [0.7, 0.7], "velocity": [-1.0, 0.5]}]
     free = load_scene(spec)
     one = eqx.filter_jit(step)
     fields = ("x", "v", "C", "F", "aux", "tag", "time")
@@ -241,7 +241,8 @@ def test_initial_velocity_adds_delta_and_a_rigid_spin_about_the_body_centre():
     scene = _free(bodies=bodies)
     m, p = scene.model, scene.params
     dv, w = np.array([0.3, -0.4]), 2.0
-    _, _, state = _start(m, X.enable(m, p, ["initial_velocity"], {"initial_velocity": {"delta": dv, "spin": [w]}}), None)
+    pe = X.enable(m, p, ["initial_velocity"], {"initial_velocity": {"delta": dv, "spin": [w]}})
+    _, _, state = _start(m, pe, None)
     x, v = np.asarray(state.x, float), np.asarray(state.v, float)
     for sl, v0 in zip(m.body_slices(), ([0.1, 0.0], [0.0, -0.2])):
         r = x[sl] - x[sl].mean(axis=0)  # about each body's own centre
@@ -296,7 +297,8 @@ def _random_state(m, p, seed):
 
 
 _TWO_BODIES = [
-    {"shape": "box", "lo": [0.2, 0.5], "hi": [0.4, 0.7], "material": {"model": "elastic", "E": 3e3, "nu": 0.3}, "ppc": 1},
+    {"shape": "box", "lo": [0.2, 0.5], "hi": [0.4, 0.7], "material": {"model": "elastic", "E": 3e3, "nu": 0.3},
+     "ppc": 1},
     {"shape": "box", "lo": [0.6, 0.3], "hi": [0.8, 0.6], "material": {"model": "newtonian", "mu": 1.0, "kappa": 1e3},
      "ppc": 1},
 ]
@@ -474,9 +476,9 @@ def test_cohesion_moves_the_drucker_prager_apex_to_mean_stress_c():
 
 def test_cohesive_sand_column_stands_taller():
     """A sand column on a floor slumps without cohesion and stands with it (sign of c)."""
-    scene = load_scene(block_spec(2, {"model": "sand", "friction_angle": 30.0, "E": 1e5}, dx=0.05, lo=[0.4, 0.1], hi=[0.55, 0.4],
-                                  frames=6, substeps=20, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0],
-                                                                "contact": "friction", "friction": 0.5}))
+    floor = {"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "friction", "friction": 0.5}
+    scene = load_scene(block_spec(2, {"model": "sand", "friction_angle": 30.0, "E": 1e5}, dx=0.05, lo=[0.4, 0.1],
+                                  hi=[0.55, 0.4], frames=6, substeps=20, floor=floor))
     m, p = scene.model, scene.params
 
     def shape(c):
