@@ -2,6 +2,7 @@
 formula and sign that extensions.py and docs/discover.md document."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -58,7 +59,8 @@ def test_each_extension_alone_is_bitwise_null():
     params, the initial state, and each compiled step (x, v, C, F) from the same states.
 
     Steps, not rollouts: compiling dominates (one program per extension), and a step is the
-    unit that is exact. In a compiled rollout (``lax.scan``) XLA may fuse the step differently
+    unit that is exact. An extension whose step program (jaxpr) is the base one's (those
+    applied by ``prepare`` or to the initial state or the observation) needs no compile. In a compiled rollout (``lax.scan``) XLA may fuse the step differently
     around an extension's zero term: rate_dependence then moves the last bit of some
     velocities (seen on CPU: 6e-8 m/s after 6 substeps); the rollout with all extensions at
     their null values is compared to 1e-6 in the test above. The scenes are tiny: the
@@ -77,7 +79,11 @@ def test_each_extension_alone_is_bitwise_null():
     free = load_scene(spec)
     one = eqx.filter_jit(step)
     fields = ("x", "v", "C", "F", "aux", "tag", "time")
-    seen = set()
+    seen, no_op = set(), set()
+
+    def jaxpr(model, params, state):  # the step's program (params closed over: their values are checked above)
+        return str(jax.make_jaxpr(lambda st: step(model, params, st))(state))
+
     for scene, ids in ((floor, collider), (free, [e for e in X.EXTENSIONS if e not in collider])):
         m, p = scene.model, scene.params
         m0, p0, s0 = _start(m, p, None)
@@ -85,6 +91,7 @@ def test_each_extension_alone_is_bitwise_null():
         for _ in range(3):
             states.append(one(m0, p0, states[-1]))
         assert float(np.max(np.abs(np.asarray(states[-1].C)))) > 0.1  # something to damp / to stress
+        base_jaxpr = jaxpr(m0, p0, s0)
         for e in [e for e in ids if X.applicable(m, e) is None]:
             seen.add(e)
             me, pe, se = _start(m, X.enable(m, p, [e]), None)
@@ -94,6 +101,9 @@ def test_each_extension_alone_is_bitwise_null():
             for c, c0 in zip(pe["colliders"], p0["colliders"]):
                 for key in c0:
                     np.testing.assert_array_equal(c[key], c0[key], err_msg=f"{e}: collider {key}")
+            if jaxpr(me, pe, s0) == base_jaxpr:  # adds no operation to the step: the same program
+                no_op.add(e)
+                continue
             for k, s in enumerate(states[:-1]):
                 out = one(me, pe, s)
                 for name in fields:
@@ -103,6 +113,8 @@ def test_each_extension_alone_is_bitwise_null():
                     else:
                         np.testing.assert_array_equal(a, b, err_msg=f"{e}: step {k} {name}")
     assert seen == set(X.EXTENSIONS) - {"cohesion"}  # cohesion: test_cohesion_is_null_at_zero_for_sand
+    # applied by prepare (values checked above), to the initial state, or to the observation only
+    assert no_op >= {"gravity", "restitution", "initial_velocity", "time_offset"}
 
 
 def test_cohesion_is_null_at_zero_for_sand():
@@ -280,8 +292,6 @@ def test_drag_relaxes_free_fall_to_the_implicit_update_and_terminal_speed():
 
 def _random_state(m, p, seed):
     """The initial state with random F (det > 0), C and aux, and a random Kirchhoff stress."""
-    import equinox as eqx
-
     from jaxmpm.model import initial_state
 
     rng = np.random.default_rng(seed)
@@ -320,8 +330,6 @@ def test_rate_dependence_adds_eta_J_sym_C_to_the_kirchhoff_stress():
 def test_rate_dependence_dissipates_an_expansion():
     """The viscous stress resists the deformation rate: a soft body expanding from rest shape
     loses kinetic energy faster with eta > 0 (a flipped sign would feed it)."""
-    import equinox as eqx
-
     from jaxmpm.model import initial_state
     from jaxmpm.step import simulate
 
@@ -330,10 +338,11 @@ def test_rate_dependence_dissipates_an_expansion():
     m, p = scene.model, scene.params
     s0 = initial_state(m, p)
     s0 = eqx.tree_at(lambda s: s.v, s0, 2.0 * (s0.x - jnp.mean(s0.x, axis=0)))
+    final = eqx.filter_jit(lambda pp: simulate(m, pp, state=s0, frames=2, checkpoint=None).final)  # one compile
 
     def kinetic(pp):
-        tr = simulate(m, pp, state=s0, frames=2, checkpoint=None)
-        return float(jnp.sum(0.5 * tr.final.mass * jnp.sum(tr.final.v ** 2, axis=-1)))
+        f = final(pp)
+        return float(jnp.sum(0.5 * f.mass * jnp.sum(f.v ** 2, axis=-1)))
 
     k_base = kinetic(X.enable(m, p, ["rate_dependence"]))
     k_visc = kinetic(X.enable(m, p, ["rate_dependence"], {"rate_dependence": {"viscosity": 50.0}}))
@@ -373,7 +382,8 @@ def test_damping_divides_C_by_1_plus_dt_zeta_each_step_and_keeps_momentum():
     damped = X.enable(m, p, ["damping", "initial_velocity"], {"initial_velocity": {"spin": [3.0]},
                                                                "damping": {"rate": zeta}})
     s0 = X.initial_velocity(m, base, initial_state(m, base))
-    a, b = step(m, base, s0), step(m, damped, s0)
+    one = eqx.filter_jit(step)  # one compile: base and damped share the params structure
+    a, b = one(m, base, s0), one(m, damped, s0)
     Ca, Cb = np.asarray(a.C, float), np.asarray(b.C, float)
     assert np.max(np.abs(Ca)) > 1.0  # the spin gives an affine field to damp
     np.testing.assert_allclose(Cb, Ca / (1.0 + m.dt * zeta), rtol=1e-5, atol=1e-6)
