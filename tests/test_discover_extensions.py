@@ -412,11 +412,15 @@ def test_time_offset_compares_the_model_at_t_minus_t0():
 
     scene = _free(frames=6, velocity=[0.5, 1.0])
     m, p = scene.model, scene.params
-    _, x = _v(m, p, 6)
-    lag, fdt = 2, m.frame_dt
-    times = (np.arange(6) + lag) * fdt
-    obs = Observation(times=times, positions=x, point_ids="particles")
-    prob = _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
+    fdt = m.frame_dt
+    times = (np.arange(6) + 2.0) * fdt  # every problem below has these times: one rollout compile
+
+    def problem(positions):
+        obs = Observation(times=times, positions=positions, point_ids="particles")
+        return _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
+
+    prob = problem(np.zeros((6, m.num_particles, 2)))
+    x = np.asarray(prob.trajectories(prob.initial())[0][0].x, float)  # the model's frames (null t0)
     col = prob.slices["time_offset.t0"]
 
     def rms(t0):
@@ -424,13 +428,12 @@ def test_time_offset_compares_the_model_at_t_minus_t0():
         theta[col] = t0
         return float(np.sqrt(np.mean(prob.residuals(theta) ** 2)))
 
-    assert rms(lag * fdt) < 1e-5
-    assert rms(0.0) > 1e-3 and rms(-lag * fdt) > rms(0.0)
+    prob = problem(x[:6])  # observed at (k + 2) frame_dt: simulated frame k
+    assert rms(2 * fdt) < 1e-5
+    assert rms(0.0) > 1e-3 and rms(-2 * fdt) > rms(0.0)
     # between frames (cubic Hermite): data delayed by 1.5 frames, observed at the frame times
     # (k + 2) frame_dt = simulated mid-frames (k + 1/2) frame_dt, on the free-fall parabola
-    mid = (x[:-1] + x[1:]) / 2 - np.array([0.0, -9.8]) * fdt**2 / 8
-    obs = Observation(times=(np.arange(5) + 2.0) * fdt, positions=mid, point_ids="particles")
-    prob = _Problem([Sequence(m, p, obs)], [], ["time_offset"], 64, jnp.float32)
+    prob = problem((x[:6] + x[1:7]) / 2 - np.array([0.0, -9.8]) * fdt**2 / 8)
     assert rms(1.5 * fdt) < 1e-5
     assert rms(1.0 * fdt) > 2e-3 and rms(2.0 * fdt) > 2e-3 and rms(-1.5 * fdt) > 2e-2
 
