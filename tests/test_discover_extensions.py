@@ -151,7 +151,8 @@ def test_extension_parameters_and_errors():
 # =========================================================================== formulas and signs
 # Each test below computes the documented effect of one extension independently
 # (extensions.py's table / docs/discover.md) in a scene where it is exact, so a flipped sign,
-# a dropped factor or another formula fails it. Rollouts go through discover's ``_rollout``.
+# a dropped factor or another formula fails it. Rollouts go through discover's ``_rollout`` where
+# possible (compiled once per params structure).
 
 #: a free body high in the domain (no collider): one particle per cell, no stress develops
 def _free(material=None, frames=6, velocity=None, bodies=None):
