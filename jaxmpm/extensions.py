@@ -11,9 +11,11 @@ Every extension is switched on by a key of ``params["extensions"]``::
 Its parameters are additive offsets whose **null value is zero** and reproduces the base
 model (exactly: the same floating-point operations give the same numbers; the only
 exception is ``moving_collider``, whose rest-frame look-ups reproduce a static collider up
-to float rounding). Which extensions are present is part of the params pytree's
-*structure*, so it is static under ``jit``: an extension that is not in the dict adds no
-operation to the step.
+to float rounding). That holds for each compiled step; in a compiled rollout (``lax.scan``)
+XLA may fuse the step differently around an extension's zero term, and ``rate_dependence``
+at ``viscosity = 0`` was seen to move the last bit of some velocities (CPU, float32).
+Which extensions are present is part of the params pytree's *structure*, so it is static
+under ``jit``: an extension that is not in the dict adds no operation to the step.
 
 Where each one acts (see :data:`EXTENSIONS` for parameters, units and bounds):
 
