@@ -312,3 +312,21 @@ def test_identify_takes_gravity_from_the_free_fall_when_the_hint_has_none(tmp_pa
     np.testing.assert_allclose(recon.spec["bodies"][0]["velocity"], v0, atol=0.05)
     recon = reconstruct(read_dataset(tmp_path / "ds", {**hint, "gravity": [0.0, -9.8, 0.0]}), "elastic")
     assert recon.spec["gravity"] == [0.0, -9.8, 0.0]  # what the person knows wins
+
+
+def test_identify_warns_when_the_free_falling_body_touches_the_reconstructed_collider_at_once(dataset):
+    """The tiny dataset's box seen from 6 views keeps a roof (its hull's top lies above the
+    true one): the body, which falls freely in the views, starts within the collider's
+    reach. The warning names the contradiction, the gap, the cause and the remedy."""
+    from types import SimpleNamespace
+
+    from jaxmpm.reconstruct import read_dataset, reconstruct
+    from jaxmpm.reconstruct.pipeline import body_collider_gap, identify_warnings
+
+    recon = reconstruct(read_dataset(dataset[0]), "newtonian", collider="mesh")
+    gap = body_collider_gap(recon)
+    assert 0.0 < gap < 0.0875  # the true gap: the block's bottom 0.2875 m, the box's top 0.2 m
+    touching = SimpleNamespace(notes=["the body is in contact from the start: the velocity is fitted with the others"])
+    (warning,) = identify_warnings(touching, recon, 0.05)
+    assert f"{1e3 * gap:.0f} mm" in warning and "roof" in warning and "falling freely" in warning
+    assert identify_warnings(SimpleNamespace(notes=[]), recon, 0.05) == []

@@ -62,5 +62,7 @@ def run_identify(args) -> int:
         print(f"{name} = {value}  (std {fit.std.get(name)})")
     print(f"first-frame IoU per view: {', '.join(f'{x:.3f}' for x in res.reconstruction.body_iou)}; "
           f"IoU over all frames: min {res.iou.min():.3f}, mean {res.iou.mean():.3f}")
+    for w in res.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(str(p) for p in res.files.values())}")
     return 0 if fit.converged else 1

@@ -379,9 +379,47 @@ def overlay_frames(observed: np.ndarray, simulated: np.ndarray, views: int = 4) 
     return tile_views(rgb, cols=V)
 
 
-def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, times: np.ndarray, material: str) -> None:
+def body_collider_gap(recon: Reconstruction) -> float | None:
+    """Smallest distance (m) from the first frame's body particles to the reconstructed
+    collider's mesh (negative: inside it), or None without one."""
+    if recon.collider_mesh is None:
+        return None
+    import trimesh
+
+    return float(-np.max(trimesh.proximity.signed_distance(recon.collider_mesh, recon.points)))
+
+
+def identify_warnings(result, recon: Reconstruction, dx: float) -> list[str]:
+    """What in the identification contradicts the data, with its likely cause and remedy.
+
+    * The fit found the body in contact from its first frame while the silhouettes show it
+      falling freely for two or more frames: the reconstructed collider reaches too close
+      to the body. A visual hull cannot carve what no silhouette edge touches — the top of
+      a box seen from above keeps a "roof" where the views' cones meet — so the material
+      lands on the roof and the fit explains the difference with a wrong material.
+    """
+    out = []
+    fall = recon.free_fall
+    contact_at_start = any("in contact from the start" in n for n in getattr(result, "notes", []))
+    if contact_at_start and recon.collider is not None and fall is not None and fall.frames >= 2:
+        gap = body_collider_gap(recon)
+        where = f" (the body's particles are {1e3 * gap:.0f} mm = {gap / dx:.2f} dx from it)" if gap is not None else ""
+        out.append(
+            f"the silhouettes show the body falling freely for {fall.frames} frames, but in the simulation it touches "
+            f"the reconstructed collider from the start{where}: the collider is probably too large on the side facing "
+            "the body (a roof its views cannot carve), and the material parameters compensate for it. Add views "
+            "near the horizon, or give the collider's geometry in the hint (a plane or a mesh)"
+        )
+    return out
+
+
+def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, times: np.ndarray, material: str,
+                 warnings: list[str] | None = None) -> None:
     """``report.md``: parameters ± σ, IoU over time per view, reconstruction quality."""
-    lines = [f"# identify: {material}", "", "## Parameters", "", "| parameter | estimate | σ |", "|---|---|---|"]
+    lines = [f"# identify: {material}", ""]
+    for w in warnings or []:
+        lines += [f"> **Warning**: {w}.", ""]
+    lines += ["## Parameters", "", "| parameter | estimate | σ |", "|---|---|---|"]
     for name, value in result.values.items():
         std = result.std.get(name)
         lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |")
@@ -417,12 +455,14 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
 
 @dataclass
 class IdentifyResult:
-    """Outcome of :func:`identify`: the fit, the reconstruction, IoU ``(V, T)`` and the files written."""
+    """Outcome of :func:`identify`: the fit, the reconstruction, IoU ``(V, T)``, the files
+    written and what contradicts the data (:func:`identify_warnings`)."""
 
     fit: object
     reconstruction: Reconstruction
     iou: np.ndarray
     files: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
 
 def identify(
@@ -486,7 +526,9 @@ def identify(
         say("evaluate")
         sim = simulated_masks(scene, result.params, dataset.observation, result.substeps)
         iou = silhouette_iou(sim, dataset.observation.masks)
-        write_report(staging / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material)
+        warnings = identify_warnings(result, recon, float(scene.model.grid.dx))
+        write_report(staging / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material,
+                     warnings)
         if video:
             write_video(staging / "overlay.mp4", overlay_frames(dataset.observation.masks, sim),
                         fps=max(1, round(1.0 / dataset.frame_dt)))
@@ -497,4 +539,4 @@ def identify(
             files[f.stem] = out / f.name
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files)
+    return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files, warnings=warnings)
