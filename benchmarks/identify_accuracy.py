@@ -6,6 +6,8 @@ AS-DiffMPM compares them. Prints one row per collider: |dlog10| of mu and kappa,
 error, the free fall's estimates, the final IoU and the wall time.
 
     PYTHONPATH=. python benchmarks/identify_accuracy.py [--views 4 --res 48 --max-steps 30]
+
+Rows measured for docs/identify.md: benchmarks/results/identify_accuracy.jsonl.
 """
 
 from __future__ import annotations
