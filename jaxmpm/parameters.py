@@ -122,7 +122,6 @@ class TanhBounded(Transform):
         return mid - 2.5 * half, mid + 2.5 * half
 
 
-
 class Linear(Transform):
     """``y = value``: angles in degrees, velocities, gravity, friction coefficients."""
 
