@@ -240,9 +240,11 @@ def cmd_identify(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .demo import run_demo
+    from .demo import run_demo, run_video_demo
 
     _check_output_folder("--out", args.out)
+    if args.video:
+        return 0 if run_video_demo(Path(args.out), quick=args.quick)["converged"] else 1
     run_demo(Path(args.out), quick=args.quick)
     return 0
 
@@ -273,6 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="simulate a ground truth, identify its parameters, print the table")
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--quick", action="store_true", help="a smaller, faster version of the demo")
+    p.add_argument("--video", action="store_true",
+                   help="identify from rendered multi-view silhouettes (jaxmpm identify) instead of tracks")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("simulate", help="run a scene and write an observation file")

@@ -1,4 +1,5 @@
-"""``jaxmpm demo``: simulate a Newtonian droplet, identify mu and kappa from its tracks."""
+"""``jaxmpm demo``: simulate a Newtonian droplet, identify mu and kappa from its tracks
+(``--video``: from multi-view silhouettes, through ``jaxmpm identify``)."""
 
 from __future__ import annotations
 
@@ -83,3 +84,64 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     print(f"{result.message}; identification took {result.seconds:.1f} s")
     print(f"wrote {out / 'fit.json'}, {out / 'loss.png'}, {video}, {out / 'observation.npz'}")
     return json.loads(json.dumps(payload))
+
+
+#: The video demo's cameras: PAC-NeRF-like views of the droplet (elevations 10-60 degrees).
+VIDEO_VIEWS, VIDEO_RES = 6, 96
+
+
+def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None) -> dict:
+    """The demo from video: simulate the droplet, render it from :data:`VIDEO_VIEWS` cameras as
+    a PAC-NeRF folder (``out/dataset``: silhouettes and images, a hint with what a person
+    knows: the floor, the frame rate, the domain and dx), then run :func:`jaxmpm.identify_dataset`
+    on it (``out/identify``: scene, fit.json, report.md, overlay video) and print the estimates
+    against the truth. The initial shape, velocity and gravity come from the views."""
+    from .datasets import save_pacnerf
+    from .fit_report import format_table
+    from .observe import Observation
+    from .reconstruct import identify
+    from .render import pacnerf_rig, render_views
+    from .scene import load_scene
+    from .step import run_frames
+
+    out.mkdir(parents=True, exist_ok=True)
+    spec = demo_scene(quick)
+    scene = load_scene(spec)
+    model = scene.model
+    say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
+    say(f"[1/3] ground truth: Newtonian droplet (mu = {TRUTH['mu']:g}, kappa = {TRUTH['kappa']:g}), "
+        f"{model.num_particles} particles, {model.frames} frames x {model.substeps} substeps")
+    x = np.asarray(run_frames(model, scene.params).x)
+    cams = pacnerf_rig(VIDEO_VIEWS, radius=1.6, target=(0.4, 0.25, 0.4), res=VIDEO_RES, min_elevation_deg=10.0,
+                       max_elevation_deg=60.0)
+    spacing = spec["dx"] / round(spec["bodies"][0]["ppc"] ** (1 / 3))
+    r = render_views(x.astype(np.float32), cams, "surfels", spacing=spacing)
+    times = np.arange(model.frames + 1) * model.frame_dt
+    obs = Observation(times=times, masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
+                      cam_to_world=r["cam_to_world"])
+    folder = save_pacnerf(out / "dataset", obs, background=np.full((VIDEO_VIEWS, VIDEO_RES, VIDEO_RES, 3), 255, np.uint8))
+    (folder / "scene_hint.toml").write_text(
+        f"dx = {spec['dx']}\nframe_dt = {spec['frame_dt']!r}\nsubsteps = {spec['substeps']}\n"
+        f"domain = {{ lo = {spec['domain']['lo']}, hi = {spec['domain']['hi']} }}\n"
+        "[[colliders]]\ntype = \"plane\"\nname = \"floor\"\npoint = [0.0, 0.1, 0.0]\nnormal = [0.0, 1.0, 0.0]\n"
+        "contact = \"sticky\"\n")
+    say(f"[2/3] rendered {VIDEO_VIEWS} views x {model.frames + 1} frames at {VIDEO_RES} px into {folder}; "
+        "identifying from the silhouettes (jaxmpm identify: reconstruct, free fall, fit)")
+    result = identify(folder, "newtonian", out / "identify", max_steps=max_steps,
+                      stage=lambda name: say(f"      [identify] {name}"),
+                      progress=lambda i, loss: say(f"      iteration {i:3d}  loss {loss:.3e}"))
+    say("[3/3] results")
+    truth = {**TRUTH, "velocity": spec["bodies"][0]["velocity"]}
+    print()
+    print(format_table(result.fit, truth=truth))
+    print()
+    for w in result.warnings:
+        print(f"warning: {w}")
+    fall = result.reconstruction.free_fall
+    if fall is not None and fall.gravity is not None:
+        print(f"gravity from the free fall ({fall.frames} frames): "
+              + ", ".join(f"{g:.2f}" for g in fall.gravity) + " m/s^2 (truth 0, -9.8, 0)")
+    print(f"{result.fit.message}; identification took {result.fit.seconds:.1f} s")
+    print(f"wrote {', '.join(str(p) for p in result.files.values())}")
+    return {"params": {k: np.asarray(v).tolist() for k, v in result.fit.values.items()}, "truth": truth,
+            "converged": bool(result.fit.converged), "files": {k: str(v) for k, v in result.files.items()}}
