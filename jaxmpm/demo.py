@@ -111,12 +111,12 @@ def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None)
     say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
     say(f"[1/3] ground truth: Newtonian droplet (mu = {TRUTH['mu']:g}, kappa = {TRUTH['kappa']:g}), "
         f"{model.num_particles} particles, {model.frames} frames x {model.substeps} substeps")
-    x = np.asarray(run_frames(model, scene.params).x)
+    traj = run_frames(model, scene.params)
+    x, times = np.asarray(traj.x), np.asarray(traj.times)
     cams = pacnerf_rig(VIDEO_VIEWS, radius=1.6, target=(0.4, 0.25, 0.4), res=VIDEO_RES, min_elevation_deg=10.0,
                        max_elevation_deg=60.0)
     spacing = spec["dx"] / round(spec["bodies"][0]["ppc"] ** (1 / 3))
     r = render_views(x.astype(np.float32), cams, "surfels", spacing=spacing)
-    times = np.arange(model.frames + 1) * model.frame_dt
     obs = Observation(times=times, masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
                       cam_to_world=r["cam_to_world"])
     folder = save_pacnerf(out / "dataset", obs, background=np.full((VIDEO_VIEWS, VIDEO_RES, VIDEO_RES, 3), 255, np.uint8))
@@ -125,7 +125,7 @@ def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None)
         f"domain = {{ lo = {spec['domain']['lo']}, hi = {spec['domain']['hi']} }}\n"
         "[[colliders]]\ntype = \"plane\"\nname = \"floor\"\npoint = [0.0, 0.1, 0.0]\nnormal = [0.0, 1.0, 0.0]\n"
         "contact = \"sticky\"\n")
-    say(f"[2/3] rendered {VIDEO_VIEWS} views x {model.frames + 1} frames at {VIDEO_RES} px into {folder}; "
+    say(f"[2/3] rendered {VIDEO_VIEWS} views x {len(times)} frames at {VIDEO_RES} px into {folder}; "
         "identifying from the silhouettes (jaxmpm identify: reconstruct, free fall, fit)")
     result = identify(folder, "newtonian", out / "identify", max_steps=max_steps,
                       stage=lambda name: say(f"      [identify] {name}"),

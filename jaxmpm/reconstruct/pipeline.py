@@ -271,7 +271,7 @@ def reconstruct(
                                           surfel_count=surfel_count, surfel_steps=surfel_steps, progress=progress)
     spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
     obs = dataset.observation
-    fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"])
+    fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"], gravity=spec["gravity"])
     if fall.velocity is not None:
         spec["bodies"][0]["velocity"] = [float(v) for v in fall.velocity]
     if "gravity" not in dataset.hint and fall.gravity is not None and fall.frames >= GRAVITY_FRAMES:
