@@ -41,6 +41,24 @@ def demo_scene(quick: bool = False) -> dict:
     }
 
 
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _ground_truth(quick: bool):
+    """Stage 1 of both demos: the built-in scene and its simulated truth, announced on stderr.
+    Returns ``(spec, scene, trajectory)``."""
+    from .scene import load_scene
+    from .step import run_frames
+
+    spec = demo_scene(quick)
+    scene = load_scene(spec)
+    model = scene.model
+    _say(f"[1/3] ground truth: Newtonian droplet (mu = {TRUTH['mu']:g}, kappa = {TRUTH['kappa']:g}), "
+         f"{model.num_particles} particles, {model.frames} frames x {model.substeps} substeps")
+    return spec, scene, run_frames(model, scene.params)
+
+
 def run_demo(out: Path, quick: bool = False) -> dict:
     """Run the demo and write ``out/{fit.json, loss.png, droplet.mp4, observation.npz}``."""
     from .fit import fit
@@ -51,28 +69,23 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     from .step import run_frames
 
     out.mkdir(parents=True, exist_ok=True)
-    spec = demo_scene(quick)
-    scene = load_scene(spec)
-    model = scene.model
-    say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
-    say(f"[1/3] ground truth: Newtonian droplet (mu = {TRUTH['mu']:g}, kappa = {TRUTH['kappa']:g}), "
-        f"{model.num_particles} particles, {model.frames} frames x {model.substeps} substeps")
     t0 = time.perf_counter()
-    truth_traj = run_frames(model, scene.params)
+    spec, scene, truth_traj = _ground_truth(quick)
+    model = scene.model
     positions = np.asarray(truth_traj.x)
     obs = Observation(times=np.asarray(truth_traj.times), positions=positions, point_ids="particles", scene=scene.to_json())
     save_observation(out / "observation.npz", obs)
-    say(f"      simulated in {time.perf_counter() - t0:.1f} s")
+    _say(f"      simulated in {time.perf_counter() - t0:.1f} s")
 
     guess = dict(spec)
     guess["bodies"] = [dict(spec["bodies"][0], material={"model": "newtonian", "density": 1000.0, **INITIAL_GUESS})]
     start = load_scene(guess)
-    say(f"[2/3] identifying mu, kappa from the tracks, starting from PAC-NeRF's guess {INITIAL_GUESS}")
+    _say(f"[2/3] identifying mu, kappa from the tracks, starting from PAC-NeRF's guess {INITIAL_GUESS}")
     result = fit(start.model, start.params, obs, ["mu", "kappa"],
-                 progress=lambda i, loss: say(f"      iteration {i:3d}  loss {loss:.3e} m^2"))
+                 progress=lambda i, loss: _say(f"      iteration {i:3d}  loss {loss:.3e} m^2"))
     fitted = np.asarray(run_frames(start.model.with_substeps(result.substeps), result.params).x)
 
-    say("[3/3] writing results")
+    _say("[3/3] writing results")
     payload = result.to_json()
     payload["truth"] = TRUTH
     write_json(out / "fit.json", payload)
@@ -100,18 +113,11 @@ def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None)
     from .fit_report import format_table
     from .observe import Observation
     from .reconstruct import identify
+    from .reconstruct.pipeline import to_toml
     from .render import pacnerf_rig, render_views
-    from .scene import load_scene
-    from .step import run_frames
 
     out.mkdir(parents=True, exist_ok=True)
-    spec = demo_scene(quick)
-    scene = load_scene(spec)
-    model = scene.model
-    say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731
-    say(f"[1/3] ground truth: Newtonian droplet (mu = {TRUTH['mu']:g}, kappa = {TRUTH['kappa']:g}), "
-        f"{model.num_particles} particles, {model.frames} frames x {model.substeps} substeps")
-    traj = run_frames(model, scene.params)
+    spec, scene, traj = _ground_truth(quick)
     x, times = np.asarray(traj.x), np.asarray(traj.times)
     cams = pacnerf_rig(VIDEO_VIEWS, radius=1.6, target=(0.4, 0.25, 0.4), res=VIDEO_RES, min_elevation_deg=10.0,
                        max_elevation_deg=60.0)
@@ -120,17 +126,14 @@ def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None)
     obs = Observation(times=times, masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
                       cam_to_world=r["cam_to_world"])
     folder = save_pacnerf(out / "dataset", obs, background=np.full((VIDEO_VIEWS, VIDEO_RES, VIDEO_RES, 3), 255, np.uint8))
-    (folder / "scene_hint.toml").write_text(
-        f"dx = {spec['dx']}\nframe_dt = {spec['frame_dt']!r}\nsubsteps = {spec['substeps']}\n"
-        f"domain = {{ lo = {spec['domain']['lo']}, hi = {spec['domain']['hi']} }}\n"
-        "[[colliders]]\ntype = \"plane\"\nname = \"floor\"\npoint = [0.0, 0.1, 0.0]\nnormal = [0.0, 1.0, 0.0]\n"
-        "contact = \"sticky\"\n")
-    say(f"[2/3] rendered {VIDEO_VIEWS} views x {len(times)} frames at {VIDEO_RES} px into {folder}; "
+    hint = {k: spec[k] for k in ("dx", "frame_dt", "substeps", "domain", "colliders")}  # what a person knows
+    (folder / "scene_hint.toml").write_text(to_toml(hint))
+    _say(f"[2/3] rendered {VIDEO_VIEWS} views x {len(times)} frames at {VIDEO_RES} px into {folder}; "
         "identifying from the silhouettes (jaxmpm identify: reconstruct, free fall, fit)")
     result = identify(folder, "newtonian", out / "identify", max_steps=max_steps,
-                      stage=lambda name: say(f"      [identify] {name}"),
-                      progress=lambda i, loss: say(f"      iteration {i:3d}  loss {loss:.3e}"))
-    say("[3/3] results")
+                      stage=lambda name: _say(f"      [identify] {name}"),
+                      progress=lambda i, loss: _say(f"      iteration {i:3d}  loss {loss:.3e}"))
+    _say("[3/3] results")
     truth = {**TRUTH, "velocity": spec["bodies"][0]["velocity"]}
     print()
     print(format_table(result.fit, truth=truth))
