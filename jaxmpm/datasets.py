@@ -13,7 +13,7 @@ intrinsics and ``cam_to_world`` in OpenCV axes (converted by
 :func:`jaxmpm.render.load_cameras_json`). Masks come from, in this order of preference
 (``mask_source="auto"``): the ``a_`` images' alpha, the ``r_`` images' own alpha channel,
 the ``m_`` images (pixels that are not white), or the difference from the frame ``-1``
-background plate.
+background plate (exposure-compensated: :func:`background_mask`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 from .errors import ObservationError
 from .observe import Observation
 
-__all__ = ["load_pacnerf", "save_pacnerf", "read_mask_image", "MASK_SOURCES"]
+__all__ = ["load_pacnerf", "save_pacnerf", "read_mask_image", "background_mask", "MASK_SOURCES"]
 
 MASK_SOURCES = ("auto", "a", "alpha", "m", "background")
 
@@ -224,8 +224,7 @@ def _frame(folder: Path, rel: str, background_rel: str | None, mask_source: str,
             bg = read_image(bg_path)[..., :3]
             if bg.shape != raw[..., :3].shape:
                 raise ObservationError(f"background plate {bg_path} has a different size from {r_path}")
-            diff = np.max(np.abs(raw[..., :3].astype(int) - bg.astype(int)), axis=-1)
-            alpha, src = np.where(diff > BACKGROUND_THRESHOLD, 255, 0).astype(np.uint8), "background"
+            alpha, src = background_mask(raw[..., :3], bg), "background"
         if alpha is not None:
             break
     if alpha is None:
@@ -247,6 +246,29 @@ def _frame(folder: Path, rel: str, background_rel: str | None, mask_source: str,
     return rgb, alpha, src
 
 
+def background_mask(image: np.ndarray, plate: np.ndarray, threshold: int = BACKGROUND_THRESHOLD) -> np.ndarray:
+    """The material's mask by difference from the background plate, exposure-compensated.
+
+    A plate shot with another exposure or light level than the frames (the usual case: it is
+    taken before or after the run) differs from them everywhere; so the plate is first scaled,
+    per channel, by the median ratio frame / plate over the pixels where the plate is not
+    dark (most pixels are background, so the median is the exposure ratio).
+
+    Arguments:
+        image, plate: ``(H, W, 3)`` uint8.
+        threshold: the difference (max over channels, 0–255) above which a pixel is material.
+
+    Returns:
+        ``(H, W)`` uint8 mask, 255 on the material.
+    """
+    img, bg = image.astype(np.float64), plate.astype(np.float64)
+    lit = bg > 16.0
+    gain = np.array([np.median(img[..., c][lit[..., c]] / bg[..., c][lit[..., c]]) if lit[..., c].any() else 1.0
+                     for c in range(3)])
+    diff = np.max(np.abs(img - gain * bg), axis=-1)
+    return np.where(diff > threshold, 255, 0).astype(np.uint8)
+
+
 def read_mask_image(path: Path) -> np.ndarray:
     """A mask image: the alpha channel when it has one that is not all opaque, else grey > 127.
 
@@ -264,6 +286,7 @@ def save_pacnerf(
     *,
     background: np.ndarray | None = None,
     collider_masks: np.ndarray | None = None,
+    alpha: bool = True,
 ) -> Path:
     """Write an Observation with masks and images as a PAC-NeRF scene folder.
 
@@ -276,6 +299,8 @@ def save_pacnerf(
         observation: with ``masks (V, T, H, W)``, ``images``, ``intrinsics``, ``cam_to_world``.
         background: ``(V, H, W, 3)`` uint8 plates (frame −1).
         collider_masks: ``(V, H, W)`` bool masks of the colliders on the plates.
+        alpha: write the masks as the images' alpha channel; ``False`` writes RGB only, and a
+            reader takes the masks from the difference with the background plate.
 
     Returns:
         The folder.
@@ -287,6 +312,8 @@ def save_pacnerf(
     obs = observation
     if obs.masks is None or obs.images is None:
         raise ObservationError("save_pacnerf needs an observation with masks and images")
+    if not alpha and background is None:
+        raise ObservationError("save_pacnerf(alpha=False) needs the background plates: the masks come from them")
     folder = Path(folder)
     (folder / "data").mkdir(parents=True, exist_ok=True)
     V, T, H, W = obs.masks.shape
@@ -298,8 +325,8 @@ def save_pacnerf(
     save_cameras_json(folder / "all_data.json", cams, times, frames=frames)
     for v in range(V):
         for t in range(T):
-            rgba = np.concatenate([obs.images[v, t], obs.masks[v, t][..., None]], axis=-1)
-            iio.imwrite(folder / "data" / f"r_{v}_{t}.png", rgba.astype(np.uint8))
+            image = np.concatenate([obs.images[v, t], obs.masks[v, t][..., None]], axis=-1) if alpha else obs.images[v, t]
+            iio.imwrite(folder / "data" / f"r_{v}_{t}.png", np.asarray(image, np.uint8))
         if background is not None:
             iio.imwrite(folder / "data" / f"r_{v}_-1.png", np.asarray(background[v], np.uint8))
         if collider_masks is not None:

@@ -62,6 +62,7 @@ from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, re
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation, check_observation_matches, check_scene_compatible
+from .parameters import Log10
 
 __all__ = [
     "METHODS",
@@ -123,6 +124,13 @@ class FitConfig:
         refine_velocity: also refit the velocity in the later stages.
         renderer, num_pixels, probes, colors: image and probe options of the objective.
         uncertainty: compute the Gauss–Newton standard deviations.
+        scan: decade offsets (e.g. ``(-1, 1, 2)``) tried before the first stage that fits a
+            scalar log10 parameter (viscosity, moduli, yield stress): one parameter at a
+            time, each at its starting value × 10^offset, the others at the best so far;
+            the stage starts from the point with the lowest stage loss (:func:`scan_start`).
+            Silhouette losses have plateaus where Levenberg–Marquardt stalls a decade or more
+            from the answer; a coarse look across them costs one rollout per point. Default
+            None (no scan).
     """
 
     method: str = "lm"
@@ -148,6 +156,7 @@ class FitConfig:
     probes: dict | None = None
     colors: Any = "auto"
     uncertainty: bool = True
+    scan: tuple[float, ...] | None = None
 
     def check(self) -> None:
         """Raise JaxmpmError naming the first invalid field (called before any work)."""
@@ -162,6 +171,9 @@ class FitConfig:
             raise JaxmpmError(f"max_dt_halvings must be >= 0, got {self.max_dt_halvings}")
         if isinstance(self.stages, str) and self.stages not in ("auto", "single"):
             raise JaxmpmError(f"stages must be 'auto', None or a list of Stage, got {self.stages!r}")
+        if self.scan is not None and (isinstance(self.scan, (str, bytes)) or not all(
+                isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) for d in self.scan)):
+            raise JaxmpmError(f"scan must be a sequence of finite decade offsets, got {self.scan!r}")
 
 
 # --------------------------------------------------------------------------- stages
@@ -444,6 +456,8 @@ def fit(
     records: list[dict] = []
     std: dict[str, np.ndarray] = {}
     last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+    scan_left = set() if not c.scan else {
+        n for n in names if isinstance(transform_of(n), Log10) and np.ndim(initial[n]) == 0}
     total_iterations = 0
     for si, stage in enumerate(plan):
         stage_method = stage.method or c.method
@@ -453,6 +467,7 @@ def fit(
             ADAM_WINDOW_STEPS if (stage_method == "adam" and stage.until is not None and si < len(plan) - 1)
             else DEFAULT_MAX_STEPS[stage_method])
         t_stage = time.perf_counter()
+        stage_scan = None
         say(f"stage {si + 1}/{len(plan)}: {', '.join(stage.names)} — {stage.label or 'all frames'} "
             f"[{stage_method}, {model.substeps} substeps/frame]")
         while True:
@@ -465,6 +480,15 @@ def fit(
                 return apply_unconstrained(model, base, snames, y)
 
             y0 = {n: y_all[n] for n in snames}
+            to_scan = [n for n in snames if n in scan_left]
+            if to_scan:
+                y0, scanned = stage_scan = scan_start(objective, params_of, y0, to_scan, c.scan)
+                scan_left.difference_update(to_scan)
+                y_all.update(y0)
+                moved = ", ".join(f"{n} x10^{d:+g}" for n, d in scanned["moved"].items()) or "none moved"
+                notes.append(f"stage {si + 1}: scanned {scanned['points']} starting points ({moved}); "
+                             f"loss {scanned['start_loss']:.4g} -> {scanned['best_loss']:.4g}")
+                say(notes[-1])
             outcome = _solve(stage_method, objective, params_of, y0, c, steps=steps, seed=c.seed + si,
                              progress=progress, offset=total_iterations)
             if outcome.unhealthy_start:
@@ -507,6 +531,8 @@ def fit(
             "terms": objective.terms,
             "timing": dict(outcome.timing),
         }
+        if stage_scan is not None:
+            record["scan"] = stage_scan[1]
         records.append(record)
         say(f"stage {si + 1}: {outcome.message}")
         final_names = [n for n in snames if last_stage_of[n] == si]
@@ -596,6 +622,40 @@ def _solve(method: str, objective: Objective, params_of, y0: dict, c: FitConfig,
 
     return adam(loss, y0, max_steps=steps, learning_rates=c.learning_rates, lr_decay=c.lr_decay, xtol=c.xtol,
                 patience=c.patience, grad=c.grad, seed=seed, progress=progress, offset=offset, names=list(y0))
+
+
+def scan_start(objective: Objective, params_of, y0: dict, names: Sequence[str], offsets: Sequence[float]):
+    """A coarse, coordinate-wise look at the loss before a stage: each of ``names`` (scalar
+    log10 variables of ``y0``) in turn is moved to ``y0[name] + offset`` for every offset,
+    the others held at the best point so far, and kept where the loss is lowest.
+
+    Unhealthy points (NaN loss) are skipped. Costs ``len(names) × len(offsets)`` rollouts of
+    the stage's window.
+
+    Returns:
+        ``(y, scanned)``: the best point (optimisation space) and a record ``{"points",
+        "start_loss", "best_loss", "moved": {name: offset}}`` for fit.json and the notes.
+    """
+    dtype = jnp.result_type(float)
+    loss_of = jax.jit(lambda y: objective.loss(params_of(y)).astype(dtype))
+
+    def loss(y):
+        value = float(loss_of(y))
+        return value if np.isfinite(value) else np.inf
+
+    best = dict(y0)
+    start = best_loss = loss(best)
+    moved, points = {}, 1
+    for n in names:
+        for d in offsets:
+            if d == 0:
+                continue
+            trial = {**best, n: y0[n] + d}
+            value = loss(trial)
+            points += 1
+            if value < best_loss:
+                best, best_loss, moved[n] = trial, value, float(d)
+    return best, {"points": points, "start_loss": start, "best_loss": best_loss, "moved": moved}
 
 
 def _stage_std(objective: Objective, params_of, y: dict, jacobian=None) -> dict[str, np.ndarray]:

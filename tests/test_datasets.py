@@ -134,3 +134,22 @@ def test_bad_folders_are_clear_errors(tmp_path):
     plain = _folder(tmp_path / "plain", "rgb")  # no alpha, no a_/m_; but a background plate
     with pytest.raises(ObservationError, match="no mask source"):
         load_pacnerf(plain, mask_source="m")
+
+
+@pytest.mark.parametrize("gain", [0.7, 1.0, 1.3])
+def test_background_mask_compensates_the_plates_exposure(gain):
+    """A plate shot darker or brighter than the frames still gives the material's mask: the
+    plate is scaled by the median frame/plate ratio before the difference is taken."""
+    from jaxmpm.datasets import BACKGROUND_THRESHOLD, background_mask
+
+    rng = np.random.default_rng(1)
+    plate = rng.integers(40, 190, (32, 40, 3)).astype(np.uint8)
+    rows, cols = np.mgrid[0:32, 0:40]
+    disk = (rows - 15) ** 2 + (cols - 22) ** 2 <= 36
+    frame = np.clip(np.round(plate * gain), 0, 255)
+    frame[disk] = [250, 20, 20]
+    mask = background_mask(frame.astype(np.uint8), plate) > 0
+    np.testing.assert_array_equal(mask, disk)
+    # without the compensation, a 30 % exposure change marks background as material
+    raw = np.max(np.abs(frame - plate.astype(float)), axis=-1) > BACKGROUND_THRESHOLD
+    assert (raw & ~disk).mean() > 0.3 if gain != 1.0 else not (raw & ~disk).any()

@@ -71,3 +71,40 @@ def test_fit_rejects_mismatched_tracks():
     bad = Observation(times=np.array([0.0, 0.04]), positions=np.zeros((2, 7, 2)), point_ids="particles")
     with pytest.raises(ObservationError, match="7 points"):
         fit(scene.model, scene.params, bad, ["mu"])
+
+
+class _Plateau:
+    """A loss of one log10 variable, flat far from its minimum at y = 2.3 and NaN at y >= 3.9."""
+
+    def loss(self, params):
+        y = params["mu"]
+        return jnp.where(y >= 3.9, jnp.nan, jnp.tanh((y - 2.3) ** 2) + 0.0 * params["v"])
+
+
+def test_scan_start_keeps_the_lowest_loss_and_skips_unhealthy_points():
+    from jaxmpm.fit import scan_start
+
+    y0 = {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.5)}
+    y, rec = scan_start(_Plateau(), lambda y: y, y0, ["mu"], (-1.0, 1.0, 2.0, 3.0))
+    assert float(y["mu"]) == pytest.approx(2.0) and float(y["v"]) == 0.5  # 10^2 beats 10^3 (0.09 vs 0.49 after tanh)
+    assert rec["moved"] == {"mu": 1.0} and rec["points"] == 5
+    assert rec["best_loss"] == pytest.approx(np.tanh(0.09), rel=1e-5) and rec["start_loss"] == pytest.approx(np.tanh(1.69), rel=1e-5)
+    # the NaN point (+3 decades) was not taken even though NaN compares as 'not greater'
+    y, rec = scan_start(_Plateau(), lambda y: y, {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.0)}, ["mu"], (3.0,))
+    assert float(y["mu"]) == 1.0 and rec["moved"] == {}
+
+
+def test_fit_with_a_scan_starts_from_the_scanned_point_and_records_it():
+    """From a guess 2 decades off on a plateau-free track loss the scan must move mu toward the
+    truth before LM starts, and fit.json's stage record says so."""
+    truth, guess = MATERIAL_CASES["newtonian"]
+    true_scene = load_scene(_spec(truth, "newtonian"))
+    traj = simulate(true_scene.model, true_scene.params)
+    obs = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x), point_ids="particles")
+    start = load_scene(_spec({"model": "newtonian", **truth, "mu": truth["mu"] / 100.0}, "newtonian"))
+    result = fit(start.model, start.params, obs, ["mu"], FitConfig(max_steps=1, stages=None, scan=(1.0, 2.0)))
+    scan = result.stages[0]["scan"]
+    assert scan["moved"] == {"mu": 2.0} and scan["best_loss"] < 1e-6 * scan["start_loss"]
+    assert abs(np.log10(float(result.values["mu"]) / truth["mu"])) < 0.01
+    with pytest.raises(JaxmpmError, match="scan must be"):
+        fit(start.model, start.params, obs, ["mu"], FitConfig(scan=("a",)))

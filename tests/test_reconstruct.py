@@ -362,3 +362,21 @@ def test_identify_warns_when_the_free_falling_body_touches_the_reconstructed_col
     (warning,) = identify_warnings(touching, recon, 0.05)
     assert f"{1e3 * gap:.0f} mm" in warning and "roof" in warning and "falling freely" in warning
     assert identify_warnings(SimpleNamespace(notes=[]), recon, 0.05) == []
+
+
+@pytest.mark.parametrize("elevation,roof", [(15.0, True), (0.0, False)])
+def test_a_view_level_with_the_top_carves_the_roof_and_the_bound_says_so(elevation, roof):
+    """Silhouettes from above cannot carve a flat top: the box's hull keeps a roof (measured
+    0.05 m with the lowest view 15° up) and roof_height bounds it; a view level with the top
+    carves it to the voxel, and the bound is 0."""
+    from jaxmpm.reconstruct import hull_mesh, roof_height
+
+    cams = tiny_cameras(6, 96, min_elevation_deg=elevation)
+    K, P = _arrays(cams)
+    mesh = hull_mesh(visual_hull(box_masks(cams), K, P, [0.0, 0.0, 0.0], [0.6, 0.6, 0.6], 0.025))
+    excess = mesh.vertices[:, 1].max() - BOX_HI[1]
+    height, theta = roof_height(mesh, P, [0.0, 1.0, 0.0])
+    if roof:
+        assert excess >= 0.04 and 0.03 <= height <= excess and theta == pytest.approx(13.0, abs=1.0)
+    else:
+        assert abs(excess) < 1e-9 and height < 1e-6

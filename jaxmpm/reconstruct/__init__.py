@@ -5,6 +5,7 @@ from .collider import Surfels as Surfels
 from .collider import chamfer_distance as chamfer_distance
 from .collider import fit_surfels as fit_surfels
 from .collider import hull_mesh as hull_mesh
+from .collider import roof_height as roof_height
 from .dataset import Dataset as Dataset
 from .dataset import read_dataset as read_dataset
 from .dataset import read_hint as read_hint

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ObservationError
 from ..fit_report import format_value
-from .collider import Surfels, fit_surfels, hull_mesh
+from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
@@ -60,6 +60,8 @@ class Reconstruction:
         collider: which reconstructed collider the scene uses: ``"disks"``, ``"mesh"`` or None.
         free_fall: the free-fall analysis of the silhouettes (:func:`free_fall`): the body's
             starting velocity guess, and the gravity when the hint gives none.
+        collider_roof: ``(height m, lowest view's elevation degrees)``: how high a roof the
+            views may have left on the collider's top (:func:`roof_height`), or None.
     """
 
     spec: dict
@@ -70,6 +72,7 @@ class Reconstruction:
     surfels: Surfels | None = None
     collider: str | None = None
     free_fall: FreeFall | None = None
+    collider_roof: tuple[float, float] | None = None
 
 
 #: Free-fall frames needed before the silhouettes' gravity replaces the default: a parabola
@@ -276,13 +279,14 @@ def reconstruct(
         spec["bodies"][0]["velocity"] = [float(v) for v in fall.velocity]
     if "gravity" not in dataset.hint and fall.gravity is not None and fall.frames >= GRAVITY_FRAMES:
         spec["gravity"] = [float(g) for g in fall.gravity]
-    used = None
+    used, roof = None, None
     if mesh is not None:
+        roof = roof_height(mesh, obs.cam_to_world, -np.asarray(spec["gravity"], float))
         used = collider
         entry = {"type": "disks", "path": "collider_disks.npz"} if collider == "disks" else {"type": "mesh", "path": "collider.obj"}
         spec["colliders"].append({**entry, "name": "collider", "contact": "sticky"})
     return Reconstruction(spec=spec, points=points, body_hull=hull, body_iou=iou, collider_mesh=mesh, surfels=surf,
-                          collider=used, free_fall=fall)
+                          collider=used, free_fall=fall, collider_roof=roof)
 
 
 def _check_floors(points: np.ndarray, planes: list[dict], folder) -> None:
@@ -337,11 +341,20 @@ def write_scene(recon: Reconstruction, out: str | os.PathLike) -> Path:
 # --------------------------------------------------------------------------- fit and report
 
 
+#: Decade offsets from the starting guess that the fit scans before it fits each log10
+#: material parameter (:attr:`jaxmpm.FitConfig.scan`). Measured on the tiny block of
+#: docs/identify.md §4 (μ = 200 Pa·s from PAC-NeRF's guess of 10): the silhouette loss is
+#: nearly flat from 10 to 50 Pa·s (0.065 → 0.056) and LM stopped at μ = 25 while the loss at
+#: the truth was 0.013.
+SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
+
+
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
                       renderer: str = RENDERER, progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
-    pre-contact frames, then the material). Returns a :class:`jaxmpm.FitResult`.
+    pre-contact frames, then the material, each log10 parameter first scanned over
+    :data:`SCAN_DECADES` from its guess). Returns a :class:`jaxmpm.FitResult`.
 
     ``renderer``: the fit's (``"surfels"`` or ``"volume"``). The default is the renderer the
     body was reconstructed against (its first-frame IoU, :data:`RENDERER`): a renderer
@@ -350,7 +363,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     than the surfels' and the fit took kappa from 1e5 to 68 Pa; docs/identify.md)."""
     from ..fit import FitConfig, fit
 
-    config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer)
+    config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES)
     return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
 
 
@@ -439,6 +452,11 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
         lines.append(f"- collider surfels: {len(recon.surfels.centers)} kept; IoU per view with the collider masks: "
                      + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
     lines.append(f"- the scene uses the reconstructed collider as: {recon.collider or 'none (no data/c_*.png)'}")
+    if recon.collider_roof is not None:
+        h, theta = recon.collider_roof
+        lines.append(f"- the lowest view is {theta:.1f}° above the collider's top, so its top may stand up to "
+                     f"{1e3 * h:.0f} mm above the true one (a visual hull cannot carve a flat top that no view sees "
+                     "edge-on; a view level with the top removes this)")
     fall = recon.free_fall
     if fall is not None:
         lines.append(f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)")
