@@ -41,14 +41,15 @@ def test_bench_grad_runs_from_an_installed_package(tmp_path):
     work.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site), "JAX_PLATFORMS": "cpu"}
     cmd = [sys.executable, "-m", "jaxmpm.cli", "bench", "grad", "--particles", "64", "--grid", "16", "--steps", "2",
-           "--ks", "1,2", "--repeats", "1"]
+           "--ks", "2", "--repeats", "1"]
     proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout
     assert "Traceback" not in proc.stderr
-    assert out.count("Taichi ti.ad.Tape forward+backward  skipped") == 1, out
+    taichi = [line for line in out.splitlines() if line.startswith("Taichi ti.ad.Tape forward+backward")]
+    assert len(taichi) == 1 and "skipped" in taichi[0], out
     assert len([line for line in out.splitlines() if line.startswith("jaxmpm reverse (x own forward)")]) == 1, out
-    for k in (1, 2):
+    for k in (2,):  # two tangents, vmapped
         row = [line for line in out.splitlines() if line.startswith(f"jaxmpm jvp Jacobian, k = {k}")]
         assert len(row) == 1, out
         assert float(row[0].split()[-4]) > 0  # the ratio to the forward rollout

@@ -15,7 +15,9 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("taichi", reason="Taichi is not installed (pip install -e '.[bench]'): Taichi autodiff check skipped")
+pytest.importorskip(
+    "taichi", reason="Taichi is not installed (pip install -e '.[bench]'): Taichi autodiff check skipped"
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
