@@ -23,6 +23,11 @@ into kernels that obey Taichi's global data access rule, with
   derivative of the polar rotation, finite at repeated singular values (``F = I``), where the
   general SVD backward (``1 / (s_j^2 - s_i^2)``) is not. ``R`` is recomputed per step, not
   stored.
+* the stencil loops are ``ti.static`` (unrolled), as in PAC-NeRF and ``taichi_step.py``. Taichi
+  then compiles the adjoints of P2G and G2P in ~90 s (its CFG/simplify passes, independent of
+  N; counted in ``compile_s``). Non-static inner loops compile in a few seconds, but Taichi
+  1.7.4's autodiff returned wrong gradients with them (28x too large for the initial velocity,
+  against jaxmpm and finite differences), so they are not used.
 
 Loss: ``mean(x_final ** 2)`` over all ``3 N`` entries, jaxmpm's ``measure_jax`` backward loss.
 Gradient with respect to ``(E, nu, density, vx, vy, vz)``: the material and the initial
@@ -44,14 +49,15 @@ import numpy as np
 from .common import (
     DEFAULT_GRID_N,
     DEFAULT_N_PARTICLES,
+    GRAD_PARAMETERS,
     MPMParams,
     grad_scene_velocity,
     initial_state,
 )
 from .taichi_step import _init, available, ti, version
 
-#: The differentiated parameters, in order.
-PARAMETERS = ("E", "nu", "density", "vx", "vy", "vz")
+#: The differentiated parameters, in order: ``("E", "nu", "density", "vx", "vy", "vz")``.
+PARAMETERS = GRAD_PARAMETERS
 
 __all__ = ["PARAMETERS", "available", "bench", "gradient", "version"]
 
