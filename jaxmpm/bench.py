@@ -1,4 +1,4 @@
-"""``jaxmpm bench step | scaling | memory``: performance of the MLS-MPM step.
+"""``jaxmpm bench step | scaling | memory | grad``: performance of the MLS-MPM step.
 
 * ``step``: one step against Taichi and Warp on the same machine, forward and forward +
   backward, per material.
@@ -6,6 +6,9 @@
   (fixed particle count), with the fitted exponent of time ~ N^p.
 * ``memory``: peak RSS of the gradient through a long checkpointed rollout (default
   16 frames x 200 substeps at 25k particles).
+* ``grad``: one reverse-mode gradient of a rollout loss against Taichi's autodiff
+  (``benchmarks/peers/taichi_grad.py``), and forward-mode Jacobians for k <= 6 parameters
+  against one forward rollout (issue 15, target 6).
 
 The scene (:mod:`jaxmpm.bench_scene`, shared with the peers): a cube of elastic material at ~8
 particles per cell in the unit box (64^3 grid by default), dt = 1e-4, gravity, slip walls.
@@ -138,6 +141,108 @@ def measure_memory(material: str, n_particles: int, grid_n: int, frames: int, su
             "n_particles": int(model.num_particles), "checkpoint": checkpoint}
 
 
+def grad_problem(n_particles: int, grid_n: int, steps: int, dtype=None):
+    """The gradient benchmark as a function of ``theta = (E, nu, density, vx, vy, vz)``
+    (:data:`jaxmpm.bench_scene.GRAD_PARAMETERS`).
+
+    The peers' cube (fixed corotated, ``_scene_model``) starting with the velocity
+    ``(vx, vy, vz) + L (x - c)`` (:func:`jaxmpm.bench_scene.grad_scene_velocity`), ``steps`` steps.
+
+    Returns:
+        ``(final_x, theta0)``: ``final_x(theta, checkpoint=False)`` gives the final positions
+        ``(N, 3)`` (each step under ``jax.checkpoint`` when ``checkpoint``), ``theta0`` the
+        scene's values ``(1e5, 0.3, 1000, 0, 0, 0)``.
+    """
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from .bench_scene import MPMParams, grad_scene_velocity
+    from .model import initial_state
+    from .step import step
+
+    dtype = dtype or jnp.float32
+    model, params = _scene_model(n_particles, grid_n, "corotated", dtype)
+    v_field = jnp.asarray(grad_scene_velocity(np.asarray(model.bodies[0].x0)), dtype)
+    p = MPMParams(grid_n=grid_n)
+    theta0 = jnp.asarray([p.E, p.nu, p.rho, 0.0, 0.0, 0.0], dtype)
+
+    def final_x(theta, checkpoint: bool = False):
+        body = {**params["bodies"][0], "E": theta[0], "nu": theta[1], "density": theta[2], "velocity": theta[3:6]}
+        prm = {**params, "bodies": (body,)}
+        s0 = initial_state(model, prm)
+        s0 = eqx.tree_at(lambda s: s.v, s0, s0.v + v_field)
+
+        def one(s):
+            return step(model, prm, s)
+
+        advance = jax.checkpoint(one) if checkpoint else one
+        return jax.lax.scan(lambda s, _: (advance(s), None), s0, None, length=steps)[0].x
+
+    return final_x, theta0
+
+
+def rollout_loss(x):
+    """The rollout loss of the gradient benchmark (and of ``measure_jax``'s backward mode)."""
+    import jax.numpy as jnp
+
+    return jnp.mean(x**2)
+
+
+def measure_grad(n_particles: int, grid_n: int, steps: int, ks=(1, 2, 3, 4, 5, 6), repeats: int = 3) -> dict:
+    """Time, in one process, a forward rollout, the reverse-mode gradient of ``mean(x_final^2)``
+    with respect to the 6 parameters (each step checkpointed), and forward-mode Jacobians of the
+    final positions with respect to the first ``k`` parameters (``jax.jvp`` vmapped over ``k``
+    basis tangents: one primal and ``k`` tangent rollouts), each as the median of ``repeats``
+    after one untimed (compiling) call."""
+    import jax
+    import jax.numpy as jnp
+
+    final_x, theta0 = grad_problem(n_particles, grid_n, steps)
+
+    def forward(theta):
+        return final_x(theta)
+
+    def reverse(theta):
+        return jax.grad(lambda t: rollout_loss(final_x(t, checkpoint=True)))(theta)
+
+    def jacobian(k):
+        basis = jnp.eye(theta0.shape[0], dtype=theta0.dtype)[:k]
+
+        def jac(theta):
+            return jax.vmap(lambda t: jax.jvp(final_x, (theta,), (t,))[1])(basis)
+
+        return jac
+
+    def timed(fn):
+        fn = jax.jit(fn)
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(theta0))
+        compile_s = time.perf_counter() - t0
+        times, cpu = [], []
+        for _ in range(max(1, repeats)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(theta0))
+            times.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+        return out, {"ms": 1e3 * float(np.median(times)), "cpu_ms": 1e3 * float(np.median(cpu)),
+                     "compile_s": compile_s}
+
+    x, fwd = timed(forward)
+    grad, rev = timed(reverse)
+    out = {"forward": fwd, "reverse": {**rev, "grad": [float(g) for g in grad],
+                                       "loss": float(rollout_loss(x))},
+           "jvp": {}}
+    for k in ks:
+        _, r = timed(jacobian(int(k)))
+        out["jvp"][str(int(k))] = r
+    from .bench_scene import GRAD_PARAMETERS
+
+    out.update({"parameters": list(GRAD_PARAMETERS), "n_particles": int(x.shape[0]), "grid_n": int(grid_n),
+                "steps": int(steps), "version": jax.__version__})
+    return out
+
+
 def _child(argv: list[str]) -> None:
     """Run one measurement and print its JSON with the process's peak RSS."""
     import resource
@@ -147,17 +252,20 @@ def _child(argv: list[str]) -> None:
         out = measure_jax(**rest)
     elif kind == "memory":
         out = measure_memory(**rest)
+    elif kind == "jax_grad":
+        out = measure_grad(**rest)
     else:
         root = peers_root()
         if root is None:
             raise RuntimeError(NO_PEERS)
         sys.path.insert(0, str(root))
-        module = __import__(f"benchmarks.peers.{kind}_step", fromlist=["bench"])
+        name = kind if kind.endswith("_grad") else f"{kind}_step"
+        module = __import__(f"benchmarks.peers.{name}", fromlist=["bench"])
         ok, why = module.available()
         if not ok:
             out = {"skipped": why}
         else:
-            out = module.bench(n_particles=rest["n_particles"], grid_n=rest["grid_n"], steps=rest["steps"])
+            out = module.bench(**rest)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print("BENCH-JSON " + json.dumps(out))
 
@@ -294,13 +402,83 @@ def bench_memory(argv: list[str]) -> int:
     return 0
 
 
+def bench_grad(argv: list[str]) -> int:
+    """``jaxmpm bench grad``: issue 15 target 6 (reverse mode against Taichi's autodiff, forward-mode
+    Jacobians against one forward rollout)."""
+    parser = argparse.ArgumentParser(
+        prog="jaxmpm bench grad",
+        description="One reverse-mode gradient of a rollout loss against Taichi autodiff (ti.ad.Tape), and "
+                    "forward-mode Jacobians for k parameters against one forward rollout (issue 15, target 6).")
+    parser.add_argument("--particles", type=int, default=25_000)
+    parser.add_argument("--grid", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=200, help="steps of the differentiated rollout")
+    parser.add_argument("--ks", default="1,2,3,4,5,6", help="numbers of parameters of the forward-mode Jacobians")
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls per measurement (median)")
+    parser.add_argument("--no-peers", action="store_true", help="skip Taichi")
+    parser.add_argument("--json", default=None, help="also write the results as JSON")
+    args = parser.parse_args(argv)
+    ks = [int(k) for k in args.ks.split(",") if k]
+    if any(not 1 <= k <= 6 for k in ks):
+        parser.error(f"--ks takes numbers from 1 to 6, got {args.ks!r}")
+    common = {"n_particles": args.particles, "grid_n": args.grid, "steps": args.steps, "repeats": args.repeats}
+    taichi: dict = {}
+    if args.no_peers:
+        pass
+    elif peers_root() is None:
+        taichi = {"skipped": NO_PEERS}
+    else:
+        print("timing taichi autodiff (ti.ad.Tape) ...", file=sys.stderr, flush=True)
+        taichi = _run_child("taichi_grad", **common)
+    print("timing jaxmpm forward, reverse and forward-mode Jacobians ...", file=sys.stderr, flush=True)
+    jax_res = _run_child("jax_grad", ks=ks, **common)
+    print(f"\nmachine: {machine_description()}; {args.particles} particles, {args.grid}^3 grid, {args.steps} steps, "
+          f"dt = 1e-4, float32, fixed corotated")
+    print("loss mean(x_final^2), gradient w.r.t. (E, nu, density, vx, vy, vz)\n")
+    if "skipped" in jax_res:
+        print(f"jaxmpm: {jax_res['skipped']}")
+        return 1
+    fwd = jax_res["forward"]["ms"]
+    rev = jax_res["reverse"]
+    print(f"{'measurement':<40}{'ms':>11}{'ratio':>9}{'target':>9}  {'met':<5}{'compile s':>10}")
+    compile_fwd = jax_res["forward"]["compile_s"]
+    print(f"{'jaxmpm forward rollout':<40}{fwd:>11.1f}{1.0:>9.2f}{'':>9}  {'':<5}{compile_fwd:>10.1f}")
+    if args.no_peers:
+        pass
+    elif "skipped" in taichi:
+        print(f"{'Taichi ti.ad.Tape forward+backward':<40}  skipped: {taichi['skipped']}")
+    else:
+        print(f"{'Taichi forward rollout (stored states)':<40}{taichi['forward_ms']:>11.1f}{'':>9}{'':>9}  {'':<5}")
+        print(f"{'Taichi ti.ad.Tape forward+backward':<40}{taichi['ms']:>11.1f}{1.0:>9.2f}{'':>9}  {'':<5}"
+              f"{taichi['compile_s']:>10.1f}")
+    ratio, target, met = rev["ms"] / fwd, "", ""
+    if taichi.get("ms"):
+        ratio, target = rev["ms"] / taichi["ms"], "1.00"
+        met = "yes" if ratio <= 1.0 else "no"
+    label = "jaxmpm reverse (x Taichi Tape)" if target else "jaxmpm reverse (x own forward)"
+    print(f"{label:<40}{rev['ms']:>11.1f}{ratio:>9.2f}{target:>9}  {met:<5}{rev['compile_s']:>10.1f}")
+    for k, r in jax_res["jvp"].items():
+        ratio, target = r["ms"] / fwd, 1.0 + 0.6 * int(k)
+        print(f"{f'jaxmpm jvp Jacobian, k = {k} (x forward)':<40}{r['ms']:>11.1f}{ratio:>9.2f}{target:>9.2f}  "
+              f"{'yes' if ratio <= target else 'no':<5}{r['compile_s']:>10.1f}")
+    names = jax_res["parameters"]
+    print("\ngradient  " + "  ".join(f"{n:>11}" for n in names))
+    print("jaxmpm    " + "  ".join(f"{g:>11.4e}" for g in rev["grad"]))
+    if taichi.get("grad"):
+        print("Taichi    " + "  ".join(f"{g:>11.4e}" for g in taichi["grad"]))
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine_description(), "taichi": taichi, "jaxmpm": jax_res},
+                                              indent=2))
+    return 0
+
+
 def bench_sysid(argv: list[str]) -> int:
     from .bench_sysid import run_sysid_bench
 
     return run_sysid_bench(argv)
 
 
-BENCHES = {"step": bench_step, "scaling": bench_scaling, "memory": bench_memory, "sysid": bench_sysid}
+BENCHES = {"step": bench_step, "scaling": bench_scaling, "memory": bench_memory, "sysid": bench_sysid,
+           "grad": bench_grad}
 
 
 def run_bench(what: str, argv: list[str]) -> int:

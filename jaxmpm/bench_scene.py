@@ -128,6 +128,26 @@ def sample_cube(
     return np.ascontiguousarray(pts, dtype=np.float32)
 
 
+#: Velocity gradient (1/s) of the gradient benchmark's initial velocity field
+#: ``v = v0 + GRAD_SCENE_VELOCITY_GRADIENT (x - centre)``: a stretch plus a shear, so that the
+#: cube deforms from the first step (at rest it is in exact free fall, no stress, and the loss
+#: would not depend on the material). 200 steps move a corner by about 1 cm, far from the walls.
+GRAD_SCENE_VELOCITY_GRADIENT = ((4.0, 2.0, 0.0), (0.0, -3.0, 1.5), (-1.0, 0.0, 2.0))
+
+
+#: The parameters of the gradient benchmark, in order: Young's modulus, Poisson's ratio, density
+#: and the three components of the initial (uniform part of the) velocity.
+GRAD_PARAMETERS = ("E", "nu", "density", "vx", "vy", "vz")
+
+
+def grad_scene_velocity(x: np.ndarray) -> np.ndarray:
+    """The gradient benchmark's initial velocity field without ``v0``: ``L (x - c)`` with
+    ``L = GRAD_SCENE_VELOCITY_GRADIENT`` and ``c`` the cloud's centroid, ``(N, 3)`` float32."""
+    x = np.asarray(x, np.float64)
+    rel = x - x.mean(axis=0)
+    return np.ascontiguousarray(rel @ np.asarray(GRAD_SCENE_VELOCITY_GRADIENT).T, dtype=np.float32)
+
+
 def initial_state(
     n_particles: int,
     grid_n: int = DEFAULT_GRID_N,

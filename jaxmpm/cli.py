@@ -334,9 +334,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_identify_parser(sub, cmd_identify)
 
     p = sub.add_parser("bench", help="performance benchmarks")
-    p.add_argument("what", choices=("step", "scaling", "memory", "sysid"),
+    p.add_argument("what", choices=("step", "scaling", "memory", "sysid", "grad"),
                    help="step (vs Taichi/Warp), scaling (time vs particles and grid), memory (long gradient), "
-                        "sysid (identification benchmark)")
+                        "sysid (identification benchmark), grad (reverse mode vs Taichi autodiff, forward-mode "
+                        "Jacobians)")
     p.add_argument("rest", nargs=argparse.REMAINDER, help="options passed to the benchmark")
     p.set_defaults(func=cmd_bench)
     return parser

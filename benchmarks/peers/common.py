@@ -14,7 +14,10 @@ import numpy as np
 from jaxmpm.bench_scene import DEFAULT_GRID_N as DEFAULT_GRID_N
 from jaxmpm.bench_scene import DEFAULT_N_PARTICLES as DEFAULT_N_PARTICLES
 from jaxmpm.bench_scene import MPMParams as MPMParams
+from jaxmpm.bench_scene import GRAD_PARAMETERS as GRAD_PARAMETERS
+from jaxmpm.bench_scene import GRAD_SCENE_VELOCITY_GRADIENT as GRAD_SCENE_VELOCITY_GRADIENT
 from jaxmpm.bench_scene import cube_cells as cube_cells
+from jaxmpm.bench_scene import grad_scene_velocity as grad_scene_velocity
 from jaxmpm.bench_scene import initial_state as initial_state
 
 
