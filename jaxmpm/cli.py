@@ -63,6 +63,19 @@ def _param_names(flag: str, text: str | None) -> list[str] | None:
     return None if text is None else check_names([n.strip() for n in text.split(",")], f"{flag} {text!r}")
 
 
+def _scan_offsets(text: str | None) -> tuple[float, ...] | None:
+    """The decade offsets of ``--scan`` (comma-separated numbers); None when not given."""
+    if text is None:
+        return None
+    try:
+        out = tuple(float(t) for t in text.split(","))
+    except ValueError:
+        raise JaxmpmError(f"--scan must be comma-separated decade offsets such as -1,1,2,3, got {text!r}") from None
+    if not all(np.isfinite(out)):
+        raise JaxmpmError(f"--scan offsets must be finite, got {text!r}")
+    return out
+
+
 def _check_at_least(flag: str, value: int | None, least: int) -> None:
     if value is not None and value < least:
         raise JaxmpmError(f"{flag} must be >= {least}, got {value}")
@@ -144,6 +157,7 @@ def cmd_fit(args) -> int:
 
     _check_output_file("--out", args.out)
     _check_at_least("--max-steps", args.max_steps, 1)
+    scan = _scan_offsets(args.scan)
     given = _param_names("--params", args.params)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)
@@ -159,7 +173,7 @@ def cmd_fit(args) -> int:
 
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
-                       velocity_until=args.velocity_until)
+                       velocity_until=args.velocity_until, scan=scan)
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     write_json(Path(args.out), payload)
@@ -304,6 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame for image losses")
     p.add_argument("--velocity-until", type=float, default=None,
                    help="last observed time (s) of the velocity stage (default: detected contact)")
+    p.add_argument("--scan", default=None, metavar="DECADES",
+                   help="before fitting each log10 parameter, try its guess x 10^d for these d and start from the "
+                        "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls; default: no scan)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.add_argument("--profile", action="store_true",

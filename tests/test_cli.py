@@ -186,6 +186,15 @@ def test_fit_missing_observation_file(simulated, tmp_path, capsys):
     assert_user_error(code, capsys, "fit", ["nothere.npz", "not found"])
 
 
+@pytest.mark.parametrize("scan,words", [("1,x", ["--scan", "'1,x'"]), ("1,inf", ["--scan", "finite"])])
+def test_fit_bad_scan_exits_2_before_loading(simulated, tmp_path, capsys, scan, words):
+    _, scene, obs, _ = simulated
+    out = tmp_path / "fit.json"
+    code = main(["fit", str(scene), str(obs), "--scan", scan, "--out", str(out)])
+    assert_user_error(code, capsys, "fit", words)
+    assert not out.exists()
+
+
 def test_fit_bad_scene_exits_2(simulated, tmp_path, capsys):
     _, _, obs, _ = simulated
     scene = tmp_path / "bad.json"

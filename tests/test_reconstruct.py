@@ -91,7 +91,7 @@ def test_reconstruction_writes_a_scene_that_loads(dataset, tmp_path):
     path = write_scene(recon, tmp_path / "out")
     scene = load_scene(path)
     assert scene.model.num_particles == len(recon.points)
-    assert [c.name for c in scene.model.colliders] == ["plane0", "collider"]
+    assert [c.name for c in scene.model.colliders] == ["floor", "collider"]  # the hint names its floor
     assert scene.spec["frames"] == 6 and scene.spec["frame_dt"] == pytest.approx(1 / 24)
     assert {p.name for p in (tmp_path / "out").iterdir()} == {"scene.toml", "body.npy", "collider.obj", "collider_disks.npz"}
     assert recon.surfels.iou.min() > 0.9
@@ -151,23 +151,46 @@ def test_unknown_hint_key_is_an_error(dataset, tmp_path):
         read_dataset(dataset[0], hint)
 
 
+def test_fitted_surfels_lie_on_the_hull_with_its_normals():
+    """The silhouettes fix the surfels' footprints, not their depth or tilt on a face seen
+    face-on: the fit puts them back on the hull (see the slow test below for what it changes)."""
+    import trimesh
+
+    from jaxmpm.reconstruct import fit_surfels
+
+    cams = tiny_cameras(4, 48, min_elevation_deg=0.0)
+    K, P = _arrays(cams)
+    masks = box_masks(cams)
+    mesh = hull_mesh(visual_hull(masks, K, P, [0.05, 0.0, 0.05], [0.55, 0.4, 0.55], 0.025))
+    surfels = fit_surfels(mesh, masks, K, P, count=120, steps=10)
+    _, distance, face = trimesh.proximity.closest_point(mesh, surfels.centers)
+    assert distance.max() < 1e-9
+    cos = np.sum(surfels.normals * mesh.face_normals[face], axis=-1)  # a point on an edge may name either face
+    assert np.all(np.isclose(cos, 1.0, atol=1e-6) | (cos < 0.9))  # marching-cubes faces differ by >= 25°
+    np.testing.assert_allclose(np.linalg.norm(surfels.normals, axis=-1), 1.0, atol=1e-6)
+
+
 @pytest.mark.slow
-def test_surfel_collider_holds_material_like_the_box(tmp_path):
-    """Surfels fitted to 5 views of a box stop a falling elastic block without a leak, within
-    one cell of where the box itself does (measured: the block rests 0.5 dx higher on the
-    fitted surfels, 0.05 dx higher on surfels sampled on the true box — silhouettes leave the
-    top face's height ambiguous up to the hull's roof)."""
+@pytest.mark.parametrize("elevation,tolerance", [(10.0, 1.0), (0.0, 0.25)])
+def test_surfel_collider_holds_material_like_the_box(tmp_path, elevation, tolerance):
+    """Surfels fitted to 5 views of a box stop a falling elastic block without a leak, where the
+    box itself does: within a cell when the lowest view is 10° above the top (silhouettes leave
+    the top's height ambiguous up to the hull's roof), within a quarter cell with a view level
+    with the top. The surfels lie on the hull with its normals (as fitted they drifted: 0.5 dx
+    too high with a level view)."""
+    import trimesh
     from collider_scenes import depth_inside, rollout
 
     from jaxmpm.colliders import Box
     from jaxmpm.reconstruct import fit_surfels
 
-    cams = pacnerf_rig(5, radius=1.4, target=tuple((BOX_LO + BOX_HI) / 2), res=64, min_elevation_deg=10.0,
+    cams = pacnerf_rig(5, radius=1.4, target=(0.3, BOX_HI[1], 0.3), res=64, min_elevation_deg=elevation,
                        max_elevation_deg=70.0)
     K, P = _arrays(cams)
     masks = box_masks(cams)
-    hull = visual_hull(masks, K, P, [0.05, 0.0, 0.05], [0.55, 0.4, 0.55], 0.02)
-    surfels = fit_surfels(hull_mesh(hull), masks, K, P, count=250, steps=25)
+    mesh = hull_mesh(visual_hull(masks, K, P, [0.05, 0.0, 0.05], [0.55, 0.4, 0.55], 0.02))
+    surfels = fit_surfels(mesh, masks, K, P, count=250, steps=25)
+    assert trimesh.proximity.closest_point(mesh, surfels.centers)[1].max() < 1e-9
     surfels.save(tmp_path / "disks.npz")
     spec = tiny_spec(frames=8)
     spec["bodies"][0]["material"] = {"model": "elastic", "E": 1e5, "nu": 0.3}  # lands and stays on top
@@ -181,7 +204,8 @@ def test_surfel_collider_holds_material_like_the_box(tmp_path):
         box = Box(lo=BOX_LO, hi=BOX_HI, name="truth")
         assert depth_inside(box, times, x).max() < 0.5 * spec["dx"], kind  # no leak into the true box
         heights[kind] = x[-1, :, 1].mean()
-    assert heights["disks"] == pytest.approx(heights["box"], abs=spec["dx"])
+    print(elevation, (heights["disks"] - heights["box"]) / spec["dx"])
+    assert heights["disks"] == pytest.approx(heights["box"], abs=tolerance * spec["dx"])
 
 
 @pytest.mark.slow

@@ -129,7 +129,12 @@ def fit_surfels(
     half the mean spacing; Adam then fits their positions, normals, two scales and opacities
     so that the renderer's soft silhouettes (:meth:`jaxmpm.render.SurfelRenderer.silhouette`)
     match ``masks`` (mean squared error over all pixels of all views). Surfels whose opacity
-    ends below ``min_opacity`` are pruned.
+    ends below ``min_opacity`` are pruned, and the others are put back onto the hull's surface
+    with its normals (the nearest point): a silhouette does not see a surfel's depth or tilt
+    on a face seen face-on, and as fitted they drift (measured on the tests' box, lowest view
+    level with its top: top surfels 25 mm apart in height and tilted by up to 87°; with the
+    true parameters a Newtonian block's silhouettes on them matched the data at IoU 0.78,
+    on the snapped surfels 0.95, on the hull's mesh 0.96, on the true box 0.99).
 
     Arguments:
         mesh: the collider's visual-hull mesh (``trimesh.Trimesh``, m).
@@ -198,6 +203,11 @@ def fit_surfels(
             progress(i, float(value))
     x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
     iou = silhouette_iou(np.asarray(jax.jit(silhouettes)(theta)) > 0.5, masks)
+    # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt on a
+    # face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in height,
+    # tilted up to 87°, and a block rested 0.5 dx too high on them)
+    x, _, face = trimesh.proximity.closest_point(mesh, x)
+    n = np.asarray(mesh.face_normals[face], float)
     keep = o >= min_opacity
     if not keep.any():
         raise ObservationError("every fitted collider surfel became transparent: the collider masks hold no collider")
