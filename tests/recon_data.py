@@ -103,7 +103,7 @@ def tiny_cameras(views: int = 4, res: int = 48, min_elevation_deg: float = 15.0)
                        max_elevation_deg=60.0)
 
 
-DEGRADATIONS = ("clean", "jitter", "shift", "drop", "blur", "dark")
+DEGRADATIONS = ("clean", "jitter", "shift", "drop", "drop_high", "blur", "dark")
 
 
 def degrade(obs, plate: np.ndarray, cmasks: np.ndarray, kind: str, seed: int = 0):
@@ -111,7 +111,8 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray, kind: str, seed: int = 0
 
     * ``jitter``: every material mask's boundary moved 1 or 2 px out or in (random per view and frame);
     * ``shift``: view 0 miscalibrated by 3 px (its images, masks and collider mask shifted right);
-    * ``drop``: view 0 missing;
+    * ``drop``: view 0 missing (the lowest: in :func:`tiny_cameras` elevations rise with the index);
+    * ``drop_high``: the last (highest) view missing;
     * ``blur``: images and masks blurred (Gaussian, σ = 1 px; masks read back at alpha ≥ 128);
     * ``dark``: no alpha — the frames are the material over a textured plate, the plate is
       written at 70 % exposure, and the masks come from the difference with it.
@@ -140,10 +141,11 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray, kind: str, seed: int = 0
         if cmasks is not None:
             cmasks = cmasks.copy()
             cmasks[0] = np.roll(cmasks[0], 3, axis=-1)
-    elif kind == "drop":
-        return (dataclasses.replace(obs, masks=masks[1:], images=images[1:], intrinsics=obs.intrinsics[1:],
-                                    cam_to_world=obs.cam_to_world[1:]), plate[1:],
-                None if cmasks is None else cmasks[1:], True)
+    elif kind in ("drop", "drop_high"):
+        keep = slice(1, None) if kind == "drop" else slice(0, -1)
+        return (dataclasses.replace(obs, masks=masks[keep], images=images[keep], intrinsics=obs.intrinsics[keep],
+                                    cam_to_world=obs.cam_to_world[keep]), plate[keep],
+                None if cmasks is None else cmasks[keep], True)
     elif kind == "blur":
         masks = np.round(gaussian_filter(masks.astype(float), sigma=(0, 0, 1, 1))).astype(np.uint8)
         images = np.round(gaussian_filter(images.astype(float), sigma=(0, 0, 1, 1, 0))).astype(np.uint8)

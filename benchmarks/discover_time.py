@@ -1,0 +1,66 @@
+"""How long `jaxmpm discover` takes on a 2D case of ~1,500 particles and 6,000 steps (issue 15,
+target 4: <= 10 min on 2 idle cores).
+
+A 2D elastic block (E = 3 kPa, dx = 9 mm, ppc 4: 1,481 particles) thrown onto a slip floor,
+60 frames x 100 substeps, tracked with 1 mm noise; the data hide a gravity error (delta g =
+(0, -2) m/s^2, ``--hidden gravity``) or nothing (``--hidden none``, the control). `discover`
+gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
+check). Prints the verdict, the cause, the held-out gain, the wall and CPU seconds.
+
+    PYTHONPATH=. python benchmarks/discover_time.py [--hidden gravity|none] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+
+def main() -> None:
+    from scenes import block_spec
+
+    from jaxmpm import extensions as X
+    from jaxmpm.discover import _rollout, discover
+    from jaxmpm.observe import Observation
+    from jaxmpm.scene import load_scene
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--hidden", choices=("gravity", "none"), default="gravity")
+    ap.add_argument("--dx", type=float, default=0.009)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--substeps", type=int, default=100)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    spec = block_spec(2, {"model": "elastic", "E": 3e3, "nu": 0.3}, dx=args.dx, frames=args.frames,
+                      substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "slip"},
+                      lo=[0.2, 0.2], hi=[0.4, 0.35], velocity=[1.5, 0.5], ppc=4)
+    scene = load_scene(spec)
+    m, p = scene.model, scene.params
+    ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
+    hidden = {"gravity": {"delta": [0.0, -2.0]}} if args.hidden == "gravity" else None
+    truth = X.enable(m, p, ids, hidden)
+    x = np.asarray(_rollout(m, truth, args.frames)[0].x, float)
+    x = x + 1e-3 * np.random.default_rng(0).standard_normal(x.shape)
+    obs = Observation(times=np.arange(args.frames) * m.frame_dt, positions=x, point_ids="particles")
+    print(f"{m.num_particles} particles, {args.frames} frames x {args.substeps} substeps "
+          f"= {args.frames * args.substeps} steps; hidden: {args.hidden}", flush=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = discover(m, p, obs, progress=lambda line: print(f"  [{time.perf_counter() - t0:7.1f} s] {line}", flush=True))
+    row = {"hidden": args.hidden, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
+           "discrepancy": bool(result.discrepancy), "cause": result.cause, "causes": list(result.causes),
+           "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,
+           "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+    print(json.dumps(row))
+    if args.json:
+        Path(args.json).write_text(json.dumps(row, indent=2))
+
+
+if __name__ == "__main__":
+    main()
