@@ -383,9 +383,13 @@ def test_identify_warns_when_the_free_falling_body_touches_the_reconstructed_col
     gap = body_collider_gap(recon)
     assert 0.0 < gap < 0.0875  # the true gap: the block's bottom 0.2875 m, the box's top 0.2 m
     touching = SimpleNamespace(notes=["the body is in contact from the start: the velocity is fitted with the others"])
-    (warning,) = identify_warnings(touching, recon, 0.05)
+    roof, warning = identify_warnings(touching, recon, 0.05)
     assert f"{1e3 * gap:.0f} mm" in warning and "roof" in warning and "falling freely" in warning
-    assert identify_warnings(SimpleNamespace(notes=[]), recon, 0.05) == []
+    # the rig's lowest view is 13° above the top: the roof warning comes without any fit
+    h, theta = recon.collider_roof
+    assert 0.5 * 0.05 < h < 0.06 and f"{theta:.0f}° above" in roof and f"{1e3 * h:.0f} mm" in roof
+    assert identify_warnings(SimpleNamespace(notes=[]), recon, 0.05) == [roof]
+    assert identify_warnings(SimpleNamespace(notes=[]), recon, 2 * h + 1e-3) == []  # below half a cell
 
 
 @pytest.mark.parametrize("elevation,roof", [(15.0, True), (0.0, False)])

@@ -94,7 +94,7 @@ class Surfels:
         tangents: ``(K, 3)`` unit first tangent axes.
         scales: ``(K, 2)`` standard deviations along the tangent axes, m.
         opacity: ``(K,)`` in [0, 1].
-        iou: ``(V,)`` IoU of the surfels' silhouettes with the collider masks.
+        iou: ``(V,)`` IoU of the (snapped) surfels' silhouettes with the collider masks.
     """
 
     centers: np.ndarray
@@ -202,12 +202,14 @@ def fit_surfels(
         if progress is not None:
             progress(i, float(value))
     x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
-    iou = silhouette_iou(np.asarray(jax.jit(silhouettes)(theta)) > 0.5, masks)
     # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt on a
     # face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in height,
     # tilted up to 87°, and a block rested 0.5 dx too high on them)
     x, _, face = trimesh.proximity.closest_point(mesh, x)
     n = np.asarray(mesh.face_normals[face], float)
+    snapped = [renderer.silhouette(jnp.asarray(x, jnp.float32), c, normals=jnp.asarray(n, jnp.float32),
+                                   scales=jnp.asarray(s, jnp.float32), opacities=jnp.asarray(o, jnp.float32)) for c in cams]
+    iou = silhouette_iou(np.asarray(jnp.stack(snapped)) > 0.5, masks)
     keep = o >= min_opacity
     if not keep.any():
         raise ObservationError("every fitted collider surfel became transparent: the collider masks hold no collider")

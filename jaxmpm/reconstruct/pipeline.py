@@ -410,8 +410,18 @@ def identify_warnings(result, recon: Reconstruction, dx: float) -> list[str]:
       to the body. A visual hull cannot carve what no silhouette edge touches — the top of
       a box seen from above keeps a "roof" where the views' cones meet — so the material
       lands on the roof and the fit explains the difference with a wrong material.
+    * No view is level with the collider's top: :func:`roof_height` bounds its roof above
+      half a cell (measured: lowest view 15° up, bound 0.8 dx, roof 1 dx, and the
+      identification on the reconstructed box failed; docs/identify.md §4).
     """
     out = []
+    if recon.collider_roof is not None and recon.collider_roof[0] > 0.5 * dx:
+        h, theta = recon.collider_roof
+        out.append(
+            f"the lowest view is {theta:.0f}° above the reconstructed collider's top, which may therefore stand up to "
+            f"{1e3 * h:.0f} mm ({h / dx:.1f} dx) above the true one (a visual hull cannot carve a flat top that no "
+            "view sees edge-on). Add a view level with the collider's top"
+        )
     fall = recon.free_fall
     contact_at_start = any("in contact from the start" in n for n in getattr(result, "notes", []))
     if contact_at_start and recon.collider is not None and fall is not None and fall.frames >= 2:
