@@ -1,7 +1,7 @@
 """How long `jaxmpm discover` takes on a 2D case of ~1,500 particles and 6,000 steps (issue 15,
 target 4: <= 10 min on 2 idle cores).
 
-A 2D elastic block (E = 3 kPa, dx = 9 mm, ppc 4: 1,481 particles) thrown onto a slip floor,
+A 2D elastic block (E = 3 kPa, dx = 9 mm, ppc 4: 1,452 particles) thrown onto a slip floor,
 60 frames x 100 substeps, tracked with 1 mm noise; the data hide a gravity error (delta g =
 (0, -2) m/s^2, ``--hidden gravity``) or nothing (``--hidden none``, the control). `discover`
 gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
