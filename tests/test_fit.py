@@ -89,9 +89,11 @@ def test_scan_start_keeps_the_lowest_loss_and_skips_unhealthy_points():
     assert float(y["mu"]) == pytest.approx(2.0) and float(y["v"]) == 0.5  # 10^2 beats 10^3 (0.09 vs 0.49 after tanh)
     assert rec["moved"] == {"mu": 1.0} and rec["points"] == 5
     assert rec["best_loss"] == pytest.approx(np.tanh(0.09), rel=1e-5) and rec["start_loss"] == pytest.approx(np.tanh(1.69), rel=1e-5)
-    # the NaN point (+3 decades) was not taken even though NaN compares as 'not greater'
+    # an unhealthy point (+3 decades: NaN) is never taken, and an unhealthy start is left for any healthy point
     y, rec = scan_start(_Plateau(), lambda y: y, {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.0)}, ["mu"], (3.0,))
     assert float(y["mu"]) == 1.0 and rec["moved"] == {}
+    y, rec = scan_start(_Plateau(), lambda y: y, {"mu": jnp.asarray(4.0), "v": jnp.asarray(0.0)}, ["mu"], (-1.0, -2.0))
+    assert float(y["mu"]) == pytest.approx(2.0) and rec["moved"] == {"mu": -2.0} and rec["start_loss"] == np.inf
 
 
 def test_fit_with_a_scan_starts_from_the_scanned_point_and_records_it():
