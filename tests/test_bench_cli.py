@@ -12,19 +12,24 @@ from pathlib import Path
 import jaxmpm
 
 
-def test_bench_step_runs_from_an_installed_package(tmp_path):
-    # What a wheel installs: the jaxmpm package alone, no benchmarks/ folder beside it.
+def _bench_installed(tmp_path, *args: str) -> str:
+    """``jaxmpm bench ARGS`` run as a wheel installs it (the jaxmpm package alone, no
+    benchmarks/ folder beside it, from another directory); returns its stdout."""
     site = tmp_path / "site"
     shutil.copytree(Path(jaxmpm.__file__).parent, site / "jaxmpm", ignore=shutil.ignore_patterns("__pycache__"))
     work = tmp_path / "elsewhere"
     work.mkdir()
     env = {**os.environ, "PYTHONPATH": str(site), "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "jaxmpm.cli", "bench", "step", "--particles", "64", "--grid", "16", "--steps", "1",
-           "--materials", "elastic", "--modes", "forward"]
-    proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, "-m", "jaxmpm.cli", "bench", *args], cwd=work, env=env,
+                          capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    out = proc.stdout
     assert "Traceback" not in proc.stderr
+    return proc.stdout
+
+
+def test_bench_step_runs_from_an_installed_package(tmp_path):
+    out = _bench_installed(tmp_path, "step", "--particles", "64", "--grid", "16", "--steps", "1",
+                           "--materials", "elastic", "--modes", "forward")
     assert out.count("Taichi/Warp: not available") == 1, out
     row = [line for line in out.splitlines() if line.startswith("jaxmpm elastic forward")]
     assert len(row) == 1, out
@@ -35,17 +40,8 @@ def test_bench_step_runs_from_an_installed_package(tmp_path):
 def test_bench_grad_runs_from_an_installed_package(tmp_path):
     # `jaxmpm bench grad` without the Taichi peer beside it: the Taichi row says why, the jaxmpm
     # rows (reverse mode against its own forward, forward-mode Jacobians) are measured.
-    site = tmp_path / "site"
-    shutil.copytree(Path(jaxmpm.__file__).parent, site / "jaxmpm", ignore=shutil.ignore_patterns("__pycache__"))
-    work = tmp_path / "elsewhere"
-    work.mkdir()
-    env = {**os.environ, "PYTHONPATH": str(site), "JAX_PLATFORMS": "cpu"}
-    cmd = [sys.executable, "-m", "jaxmpm.cli", "bench", "grad", "--particles", "64", "--grid", "16", "--steps", "2",
-           "--ks", "2", "--repeats", "1"]
-    proc = subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    out = proc.stdout
-    assert "Traceback" not in proc.stderr
+    out = _bench_installed(tmp_path, "grad", "--particles", "64", "--grid", "16", "--steps", "2", "--ks", "2",
+                           "--repeats", "1")
     taichi = [line for line in out.splitlines() if line.startswith("Taichi ti.ad.Tape forward+backward")]
     assert len(taichi) == 1 and "skipped" in taichi[0], out
     assert len([line for line in out.splitlines() if line.startswith("jaxmpm reverse (x own forward)")]) == 1, out
