@@ -1,6 +1,6 @@
 """Identification accuracy from raw views (issue 13).
 
-A tiny scene of tests/recon_data.py (a 0.2 m block thrown down at 1 m/s onto a box, the edge
+A tiny scene of jaxmpm.reconstruct.synthetic (a 0.2 m block thrown down at 1 m/s onto a box, the edge
 of a box or the bunny; dx = 0.05 m, ~250 particles) is simulated, rendered from the views
 with jaxmpm's surfel renderer, optionally degraded (noisy masks, a shifted or missing view,
 blur, a darker plate), written as a PAC-NeRF folder and identified from it: the body and the
@@ -22,23 +22,21 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
 
 def main() -> None:
-    from recon_data import COLLIDERS, DEGRADATIONS, MATERIAL_TRUTHS, make_dataset, tiny_spec, true_collider_mesh
-
     from jaxmpm.bench_sysid import FIT_NAMES, errors
     from jaxmpm.reconstruct import read_dataset, reconstruct, silhouette_iou, write_scene
     from jaxmpm.reconstruct.collider import chamfer_distance
     from jaxmpm.reconstruct.pipeline import identify_material, simulated_masks
+    from jaxmpm.reconstruct.synthetic import (
+        COLLIDERS, DEGRADATIONS, MATERIAL_TRUTHS, collider_mesh, drop_scene, render_drop_dataset,
+    )
     from jaxmpm.scene import load_scene
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -56,14 +54,14 @@ def main() -> None:
     ap.add_argument("--num-pixels", type=int, default=256)
     ap.add_argument("--out", default=None, help="append the rows to this .jsonl file")
     args = ap.parse_args()
-    spec = tiny_spec(args.collider, material=args.material)
+    spec = drop_scene(args.collider, material=args.material)
     truth = MATERIAL_TRUTHS[args.material]
     truth_v = np.asarray(spec["bodies"][0]["velocity"], float)
     names = FIT_NAMES[args.material]
-    true_surface = true_collider_mesh(COLLIDERS[args.collider]).sample(20000, seed=0)
+    true_surface = collider_mesh(COLLIDERS[args.collider]).sample(20000, seed=0)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        folder, _ = make_dataset(Path(tmp) / "ds", views=args.views, res=args.res, min_elevation_deg=args.min_elevation,
+        folder, _ = render_drop_dataset(Path(tmp) / "ds", views=args.views, res=args.res, min_elevation_deg=args.min_elevation,
                                  material=args.material, collider=args.collider, degradation=args.degrade)
         ds = read_dataset(folder)
         obs = ds.observation

@@ -2,7 +2,7 @@
 
     pip install xprof                     # reads jax.profiler's traces (not a jaxmpm dependency)
     python benchmarks/profile_step.py [--material corotated] [--particles 25000] [--grid 64]
-                                      [--repeats 10] [--json out.json]
+                                      [--repeats 10] [--json out.json] [--tangents K]
 
 Traces ``--repeats`` calls of (a) the jitted step and (b) the jitted gradient of a loss of
 one step with respect to the parameters and the state, with :func:`jax.profiler.trace`. Every
@@ -12,6 +12,10 @@ grid_update, g2p, advect), and to the backward pass when its metadata says ``tra
 (reverse mode's transposition of the forward's linearisation). Times are summed over XLA's
 worker threads (CPU milliseconds per call), so the table is the cost of each stage, not the
 wall time: on 2 cores the wall time is between the total / 2 and the total.
+
+``--tangents K`` profiles forward mode instead of (b): ``jax.vmap`` of ``jax.jvp`` of the step
+over K tangent directions of the parameters and the state (what a Levenberg–Marquardt
+Jacobian of K parameters does at every step of a rollout), against the step itself.
 """
 
 from __future__ import annotations
@@ -97,6 +101,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--top", type=int, default=15, help="list the most expensive ops")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--tangents", type=int, default=0, help="profile forward mode with K tangents instead")
     args = parser.parse_args(argv)
 
     import jax
@@ -120,6 +125,8 @@ def main(argv=None) -> int:
 
     gradient = jax.grad(loss, argnums=(0, 1), allow_int=True)
     fwd, fwd_wall, fwd_cpu = profile(forward, (params, state), args.repeats)
+    if args.tangents:
+        return _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu)
     bwd, bwd_wall, bwd_cpu = profile(gradient, (params, state), args.repeats)
 
     f_stage, b_stage = by_stage(fwd), by_stage(bwd)
@@ -131,7 +138,7 @@ def main(argv=None) -> int:
         f, gf, gb = f_stage.get((s, "forward"), 0.0), b_stage.get((s, "forward"), 0.0), b_stage.get((s, "backward"), 0.0)
         if f or gf or gb:
             print(f"| {s} | {f:.2f} | {gf:.2f} | {gb:.2f} | {gb / f if f else float('nan'):.1f} |")
-    f_sum, b_sum = sum(r["ms"] for r in fwd.values()), sum(r["ms"] for r in bwd.values())
+    f_sum = sum(r["ms"] for r in fwd.values())
     print(f"| **total in ops** | {f_sum:.2f} | {sum(v for (s, d), v in b_stage.items() if d == 'forward'):.2f} | "
           f"{sum(v for (s, d), v in b_stage.items() if d == 'backward'):.2f} | |")
     print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; gradient {bwd_wall:.2f} ms wall / "
@@ -146,6 +153,53 @@ def main(argv=None) -> int:
         with open(args.json, "w") as fh:
             json.dump({"args": vars(args), "forward": fwd, "gradient": bwd, "wall_ms": [fwd_wall, bwd_wall],
                        "cpu_ms": [fwd_cpu, bwd_cpu]}, fh, indent=1)
+    return 0
+
+
+def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
+    """``--tangents K``: the step's forward-mode cost by stage against the step's."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmpm.step import step
+
+    dynamic, static = eqx.partition(state, eqx.is_inexact_array)
+    leaves, treedef = jax.tree_util.tree_flatten((params, dynamic))
+    keys = jax.random.split(jax.random.PRNGKey(0), len(leaves))
+    # K random tangent directions of every float input (parameters and state)
+    tangents = treedef.unflatten([1e-3 * jax.random.normal(k, (args.tangents, *jnp.shape(a)), jnp.result_type(a))
+                                  for k, a in zip(keys, leaves)])
+
+    def push(params, dynamic, tangents):
+        def out(p, d):
+            return eqx.partition(step(model, p, eqx.combine(d, static)), eqx.is_inexact_array)[0]
+
+        return jax.vmap(lambda t: jax.jvp(out, (params, dynamic), t)[1])(tangents)
+
+    tan, tan_wall, tan_cpu = profile(push, (params, dynamic, tangents), args.repeats)
+    f_stage, t_stage = by_stage(fwd), by_stage(tan)
+    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
+          f"(summed over XLA's threads), {args.repeats} calls; forward mode with {args.tangents} tangents\n")
+    print("| stage | step | jvp of the step (primal + tangents) | jvp ÷ step |")
+    print("|---|---|---|---|")
+    for s in (*STAGES, "outside the step"):
+        f, t = f_stage.get((s, "forward"), 0.0), t_stage.get((s, "forward"), 0.0)
+        if f or t:
+            print(f"| {s} | {f:.2f} | {t:.2f} | {t / f if f else float('nan'):.1f} |")
+    f_sum, t_sum = sum(r["ms"] for r in fwd.values()), sum(r["ms"] for r in tan.values())
+    print(f"| **total in ops** | {f_sum:.2f} | {t_sum:.2f} | {t_sum / f_sum:.1f} |")
+    print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; jvp {tan_wall:.2f} ms wall / "
+          f"{tan_cpu:.2f} ms CPU per call")
+    print(f"\nthe {args.top} most expensive ops of the jvp:\n")
+    print("| CPU ms | op | stage | op_name |")
+    print("|---|---|---|---|")
+    for op, row in sorted(tan.items(), key=lambda kv: -kv[1]["ms"])[: args.top]:
+        print(f"| {row['ms']:.2f} | {op} | {stage_of(row['op_name'])[0]} | {row['op_name'][-90:]} |")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"args": vars(args), "forward": fwd, "jvp": tan, "wall_ms": [fwd_wall, tan_wall],
+                       "cpu_ms": [fwd_cpu, tan_cpu]}, fh, indent=1)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Reconstruction quality on the tiny rendered dataset of tests/recon_data.py (no fit).
+"""Reconstruction quality on the tiny rendered dataset of jaxmpm.reconstruct.synthetic (no fit).
 
 Prints the first-frame IoU per view, the body's particle count against the truth's, and the
 Chamfer distances of the collider mesh and of the fitted surfels to the true box; writes
@@ -12,21 +12,17 @@ dropped) and prints the body reconstruction's accuracy for each, with k = 0 and 
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
 
 def main() -> None:
     import trimesh
-    from recon_data import BOX_HI, BOX_LO, make_dataset
-
     from jaxmpm.reconstruct import chamfer_distance, read_dataset, reconstruct
     from jaxmpm.reconstruct.pipeline import RENDERER, _cameras
+    from jaxmpm.reconstruct.synthetic import COLLIDERS, render_drop_dataset
     from jaxmpm.render import SurfelRenderer, render_views, tile_views
 
     ap = argparse.ArgumentParser()
@@ -35,12 +31,13 @@ def main() -> None:
     ap.add_argument("--out", default="docs/img/identify_reconstruction.png")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        folder, x = make_dataset(Path(tmp) / "ds", views=args.views, res=args.res)
+        folder, x = render_drop_dataset(Path(tmp) / "ds", views=args.views, res=args.res)
         ds = read_dataset(folder)
         rec = reconstruct(ds, "newtonian")
     obs = ds.observation
-    box = trimesh.creation.box(extents=BOX_HI - BOX_LO)
-    box.apply_translation((BOX_LO + BOX_HI) / 2)
+    lo, hi = (np.asarray(COLLIDERS["box"][k]) for k in ("lo", "hi"))
+    box = trimesh.creation.box(extents=hi - lo)
+    box.apply_translation((lo + hi) / 2)
     truth = trimesh.sample.sample_surface(box, 20000, seed=0)[0]
     mesh_pts = trimesh.sample.sample_surface(rec.collider_mesh, 20000, seed=0)[0]
     print(f"views {args.views}, {args.res} px; dx = {rec.spec['dx']}")

@@ -256,9 +256,11 @@ def cmd_identify(args) -> int:
 def cmd_demo(args) -> int:
     from .demo import run_demo, run_video_demo
 
+    if args.collider is not None and not args.video:
+        raise JaxmpmError("--collider is for the video demo: add --video")
     _check_output_folder("--out", args.out)
     if args.video:
-        return 0 if run_video_demo(Path(args.out), quick=args.quick)["converged"] else 1
+        return 0 if run_video_demo(Path(args.out), quick=args.quick, collider=args.collider or "edge")["converged"] else 1
     run_demo(Path(args.out), quick=args.quick)
     return 0
 
@@ -290,7 +292,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--quick", action="store_true", help="a smaller, faster version of the demo")
     p.add_argument("--video", action="store_true",
-                   help="identify from rendered multi-view silhouettes (jaxmpm identify) instead of tracks")
+                   help="identify from rendered multi-view silhouettes (jaxmpm identify) instead of tracks: "
+                        "the body and the collider are reconstructed from the views")
+    p.add_argument("--collider", choices=("edge", "bunny"), default=None,
+                   help="the video demo's collider: the edge of a box (default) or the Stanford bunny")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("simulate", help="run a scene and write an observation file")

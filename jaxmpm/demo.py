@@ -99,52 +99,67 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     return json.loads(json.dumps(payload))
 
 
-#: The video demo's cameras: PAC-NeRF-like views of the droplet (elevations 10-60 degrees).
+#: The video demo's rig: the identify benchmark's (docs/identify.md §3): 6 views of 96 px, the
+#: lowest level with the collider's top (it carves the collider's roof), the highest at 60°.
 VIDEO_VIEWS, VIDEO_RES = 6, 96
+#: The video demo's colliders (:data:`jaxmpm.reconstruct.synthetic.COLLIDERS`).
+VIDEO_COLLIDERS = ("edge", "bunny")
 
 
-def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None) -> dict:
-    """The demo from video: simulate the droplet, render it from :data:`VIDEO_VIEWS` cameras as
-    a PAC-NeRF folder (``out/dataset``: silhouettes and images, a hint with what a person
-    knows: the floor, the frame rate, the domain and dx), then run :func:`jaxmpm.identify_dataset`
-    on it (``out/identify``: scene, fit.json, report.md, overlay video) and print the estimates
-    against the truth. The initial shape, velocity and gravity come from the views."""
-    from .datasets import save_pacnerf
+def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None, collider: str = "edge") -> dict:
+    """The demo from video: a Newtonian block (mu = 200, kappa = 1e5) thrown down onto the
+    edge of a box or onto the bunny (``collider``, one of :data:`VIDEO_COLLIDERS`) is
+    simulated and rendered from :data:`VIDEO_VIEWS` cameras as a PAC-NeRF folder
+    (``out/dataset``: silhouettes, images, white plates, collider masks, and a hint with what a
+    person knows: the floor, the frame rate, the domain and dx;
+    :func:`jaxmpm.reconstruct.synthetic.render_drop_dataset`); then
+    :func:`jaxmpm.identify_dataset` runs on it (``out/identify``: scene, fit.json, report.md,
+    overlay video). The body's shape, its velocity, gravity and the collider (fitted 2D
+    Gaussian surfels) come from the views. Prints the estimates against the truth and the
+    reconstructed collider's Chamfer distance to the true one.
+
+    ``quick``: 4 views of 64 px (the plumbing; the estimates are not meant to be accurate)."""
     from .fit_report import format_table
-    from .observe import Observation
-    from .reconstruct import identify
-    from .reconstruct.pipeline import to_toml
-    from .render import pacnerf_rig, render_views
+    from .reconstruct import chamfer_distance, identify
+    from .reconstruct.synthetic import COLLIDERS, MATERIAL_TRUTHS, collider_mesh, drop_scene, render_drop_dataset
 
+    if collider not in VIDEO_COLLIDERS:
+        raise ValueError(f"unknown video demo collider {collider!r}; one of {VIDEO_COLLIDERS}")
     out.mkdir(parents=True, exist_ok=True)
-    spec, scene, traj = _ground_truth(quick)
-    x, times = np.asarray(traj.x), np.asarray(traj.times)
-    cams = pacnerf_rig(VIDEO_VIEWS, radius=1.6, target=(0.4, 0.25, 0.4), res=VIDEO_RES, min_elevation_deg=10.0,
-                       max_elevation_deg=60.0)
-    spacing = spec["dx"] / round(spec["bodies"][0]["ppc"] ** (1 / 3))
-    r = render_views(x.astype(np.float32), cams, "surfels", spacing=spacing)
-    obs = Observation(times=times, masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
-                      cam_to_world=r["cam_to_world"])
-    folder = save_pacnerf(out / "dataset", obs, background=np.full((VIDEO_VIEWS, VIDEO_RES, VIDEO_RES, 3), 255, np.uint8))
-    hint = {k: spec[k] for k in ("dx", "frame_dt", "substeps", "domain", "colliders")}  # what a person knows
-    (folder / "scene_hint.toml").write_text(to_toml(hint))
-    _say(f"[2/3] rendered {VIDEO_VIEWS} views x {len(times)} frames at {VIDEO_RES} px into {folder}; "
-        "identifying from the silhouettes (jaxmpm identify: reconstruct, free fall, fit)")
+    views, res = (4, 64) if quick else (VIDEO_VIEWS, VIDEO_RES)
+    spec = drop_scene(collider)
+    truth = {**MATERIAL_TRUTHS["newtonian"], "velocity": spec["bodies"][0]["velocity"]}
+    where = "the edge of a box" if collider == "edge" else "the Stanford bunny"
+    _say(f"[1/3] ground truth: a Newtonian block (mu = {truth['mu']:g}, kappa = {truth['kappa']:g}) thrown down onto "
+         f"{where}, {spec['frames']} frames x {spec['substeps']} substeps; rendering {views} views at {res} px")
+    folder, _ = render_drop_dataset(out / "dataset", views=views, res=res, frames=spec["frames"], min_elevation_deg=0.0,
+                                    collider=collider)
+    _say(f"[2/3] identifying from the silhouettes in {folder} (jaxmpm identify: reconstruct the body and the "
+         "collider, free fall, fit)")
     result = identify(folder, "newtonian", out / "identify", max_steps=max_steps,
                       stage=lambda name: _say(f"      [identify] {name}"),
                       progress=lambda i, loss: _say(f"      iteration {i:3d}  loss {loss:.3e}"))
     _say("[3/3] results")
-    truth = {**TRUTH, "velocity": spec["bodies"][0]["velocity"]}
     print()
     print(format_table(result.fit, truth=truth))
     print()
+    rec = result.reconstruction
+    chamfer = {}
+    if rec.collider_mesh is not None:
+        true_surface = collider_mesh(COLLIDERS[collider]).sample(20000, seed=0)
+        chamfer["mesh"] = chamfer_distance(np.asarray(rec.collider_mesh.sample(20000, seed=0)), true_surface)
+        if rec.surfels is not None:
+            chamfer["surfels"] = chamfer_distance(rec.surfels.centers, true_surface)
+        print(f"collider from the views: {rec.collider}; Chamfer distance to the true {collider}: "
+              + ", ".join(f"{k} {1e3 * v:.1f} mm" for k, v in chamfer.items()) + f" (dx = {1e3 * spec['dx']:g} mm)")
     for w in result.warnings:
         print(f"warning: {w}")
-    fall = result.reconstruction.free_fall
+    fall = rec.free_fall
     if fall is not None and fall.gravity is not None:
         print(f"gravity from the free fall ({fall.frames} frames): "
               + ", ".join(f"{g:.2f}" for g in fall.gravity) + " m/s^2 (truth 0, -9.8, 0)")
     print(f"{result.fit.message}; identification took {result.fit.seconds:.1f} s")
     print(f"wrote {', '.join(str(p) for p in result.files.values())}")
     return {"params": {k: np.asarray(v).tolist() for k, v in result.fit.values.items()}, "truth": truth,
-            "converged": bool(result.fit.converged), "files": {k: str(v) for k, v in result.files.items()}}
+            "converged": bool(result.fit.converged), "files": {k: str(v) for k, v in result.files.items()},
+            "collider": collider, "chamfer_m": chamfer}

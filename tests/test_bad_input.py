@@ -216,6 +216,12 @@ def test_demo_into_a_read_only_folder_refused_before_the_work(tmp_path, capsys):
     assert f"--out {target}" in line and "cannot write into" in line, line
 
 
+def test_demo_collider_without_video_refused_before_the_work(tmp_path, capsys):
+    line = user_error(capsys, "demo", ["demo", "--collider", "bunny", "--out", str(tmp_path / "demo")])
+    assert "--collider" in line and "--video" in line, line
+    assert not (tmp_path / "demo").exists()
+
+
 def test_outputs_under_a_file_refused(tmp_path, scene_file, capsys):
     (tmp_path / "afile").write_text("")
     line = user_error(capsys, "simulate", ["simulate", str(scene_file), "--out", str(tmp_path / "afile" / "o.npz")])

@@ -1,20 +1,38 @@
 """Reconstruction from views (jaxmpm.reconstruct) and `jaxmpm identify` on tiny datasets
-rendered by jaxmpm itself (tests/recon_data.py)."""
+rendered by jaxmpm itself (jaxmpm.reconstruct.synthetic)."""
 
 import json
 import shutil
 
 import numpy as np
 import pytest
-from recon_data import BOX_HI, BOX_LO, box_masks, make_dataset, sphere_masks, tiny_cameras, tiny_spec
-
 from jaxmpm.cli import main
 from jaxmpm.errors import ObservationError
 from jaxmpm.reconstruct import (
     hull_mesh, read_dataset, reconstruct, reconstruct_body, scene_skeleton, silhouette_iou, visual_hull, write_scene,
 )
 from jaxmpm.render import look_at, pacnerf_rig, stack_cameras
+from jaxmpm.reconstruct.synthetic import COLLIDERS, collider_mesh, drop_cameras, drop_scene, mesh_masks, render_drop_dataset
+from jaxmpm.reconstruct.synthetic import box_masks as _box_masks
 from jaxmpm.scene import load_scene
+
+BOX_LO, BOX_HI = (np.asarray(COLLIDERS["box"][k], float) for k in ("lo", "hi"))
+
+
+def box_masks(cams, lo=BOX_LO, hi=BOX_HI):
+    return _box_masks(cams, lo, hi)
+
+
+def sphere_masks(cameras, center, radius) -> np.ndarray:
+    """Exact silhouettes ``(V, H, W)`` bool of a sphere (rays that meet it)."""
+    out = []
+    for v in range(cameras.num_views):
+        o, d = (np.asarray(a, float) for a in cameras.view(v).rays())
+        oc = o - np.asarray(center, float)
+        b = np.sum(oc * d, axis=-1)
+        out.append((b * b - np.sum(oc * oc, axis=-1) + radius**2 > 0).reshape(cameras.height, cameras.width))
+    return np.stack(out)
+
 
 CENTER = np.array([0.5, 0.3, 0.5])
 
@@ -68,9 +86,28 @@ def test_silhouette_iou():
     np.testing.assert_allclose(silhouette_iou(a, b), [4 / 12, 1.0])
 
 
+@pytest.mark.parametrize("collider", ["box", "bunny"])
+def test_rasterised_mesh_silhouettes_match_ray_casting(collider):
+    """The synthetic datasets' collider masks (projected triangles filled, no ray-casting
+    dependency) agree with trimesh's ray casting through the pixel centres (and, for the box,
+    with the exact ray-slab masks)."""
+    cams = drop_cameras(4, 48, min_elevation_deg=0.0)
+    mesh = collider_mesh(COLLIDERS[collider])
+    raster = mesh_masks(cams, np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    cast = []
+    for v in range(cams.num_views):
+        o, d = (np.asarray(a, float) for a in cams.view(v).rays())
+        cast.append(mesh.ray.intersects_any(o, d).reshape(cams.height, cams.width))
+    cast = np.stack(cast)
+    assert cast.sum(axis=(1, 2)).min() > 40  # the collider is in every view
+    assert silhouette_iou(raster, cast).min() > 0.98
+    if collider == "box":
+        assert silhouette_iou(raster, box_masks(cams)).min() > 0.98
+
+
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    folder, x = make_dataset(tmp_path_factory.mktemp("tiny") / "ds", views=6, res=96)
+    folder, x = render_drop_dataset(tmp_path_factory.mktemp("tiny") / "ds", views=6, res=96)
     return folder, x
 
 
@@ -158,7 +195,7 @@ def test_fitted_surfels_lie_on_the_hull_with_its_normals():
 
     from jaxmpm.reconstruct import fit_surfels
 
-    cams = tiny_cameras(4, 48, min_elevation_deg=0.0)
+    cams = drop_cameras(4, 48, min_elevation_deg=0.0)
     K, P = _arrays(cams)
     masks = box_masks(cams)
     mesh = hull_mesh(visual_hull(masks, K, P, [0.05, 0.0, 0.05], [0.55, 0.4, 0.55], 0.025))
@@ -192,7 +229,7 @@ def test_surfel_collider_holds_material_like_the_box(tmp_path, elevation, tolera
     surfels = fit_surfels(mesh, masks, K, P, count=250, steps=25)
     assert trimesh.proximity.closest_point(mesh, surfels.centers)[1].max() < 1e-9
     surfels.save(tmp_path / "disks.npz")
-    spec = tiny_spec(frames=8)
+    spec = drop_scene(frames=8)
     spec["bodies"][0]["material"] = {"model": "elastic", "E": 1e5, "nu": 0.3}  # lands and stays on top
     heights = {}
     for kind in ("box", "disks"):
@@ -266,7 +303,7 @@ def test_a_failing_fit_leaves_no_output(dataset, tmp_path, monkeypatch):
 def _falling_sphere(views=5, res=96, frames=8, contact=5):
     """Exact silhouettes of a sphere (r = 6 cm) thrown under a tilted gravity, stopping dead at
     frame ``contact`` (as on a sticky collider)."""
-    cams = tiny_cameras(views, res)
+    cams = drop_cameras(views, res)
     times = np.arange(frames) / 24
     g, v0, c0 = np.array([1.0, -9.8, 0.5]), np.array([0.3, 0.2, -0.2]), np.array([0.3, 0.45, 0.3])
     t = np.minimum(times, times[contact - 1])[:, None]
@@ -399,7 +436,7 @@ def test_a_view_level_with_the_top_carves_the_roof_and_the_bound_says_so(elevati
     carves it to the voxel, and the bound is 0."""
     from jaxmpm.reconstruct import hull_mesh, roof_height
 
-    cams = tiny_cameras(6, 96, min_elevation_deg=elevation)
+    cams = drop_cameras(6, 96, min_elevation_deg=elevation)
     K, P = _arrays(cams)
     mesh = hull_mesh(visual_hull(box_masks(cams), K, P, [0.0, 0.0, 0.0], [0.6, 0.6, 0.6], 0.025))
     excess = mesh.vertices[:, 1].max() - BOX_HI[1]

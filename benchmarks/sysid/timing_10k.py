@@ -108,6 +108,8 @@ def main() -> None:
         out["fit_iterations"] = result.iterations
         out["fit_converged"] = result.converged
         out["fit_errors"] = {n: abs(float(np.log10(result.values[n] / truth[n]))) for n in names}
+        out["fit_timing"] = json.loads(json.dumps(result.timing, default=float))
+        out["fit_stages"] = [{k: r.get(k) for k in ("iterations", "message", "timing")} for r in result.stages]
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     out["load_average"] = os.getloadavg()[0]
     print("TIMING-JSON " + json.dumps(out))
