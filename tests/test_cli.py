@@ -321,7 +321,7 @@ def test_demo_video_goes_from_rendered_views_to_parameters(tmp_path, capsys):
     report = (tmp_path / "identify" / "report.md").read_text()
     assert "free fall: 2 frames" in report
     scene = (tmp_path / "identify" / "scene.toml").read_text()
-    assert "disks" in scene
+    assert 'path = "collider.obj"' in scene  # the hull mesh (the default; the surfels are written too)
     velocity = json.loads(scene.split("velocity = ")[1].split("\n")[0])
     np.testing.assert_allclose(velocity, [0.0, -1.0, 0.0], atol=0.05)  # from the free fall, corrected by g
     assert "truth" in capsys.readouterr().out

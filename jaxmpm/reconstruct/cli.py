@@ -16,8 +16,9 @@ def add_identify_parser(sub, func) -> None:
     p.add_argument("--params", default=None, help="comma-separated parameters (default: the material's and velocity)")
     p.add_argument("--hint", default=None, help="scene hint (.toml/.json; default DATASET_DIR/scene_hint.toml)")
     p.add_argument("--out", default="identify_out", help="output folder (default: identify_out)")
-    p.add_argument("--collider", choices=("disks", "mesh"), default="disks",
-                   help="reconstructed collider the scene uses: fitted surfels (default) or the hull mesh")
+    p.add_argument("--collider", choices=("mesh", "disks"), default="mesh",
+                   help="reconstructed collider the scene uses: the hull mesh (default) or the fitted surfels "
+                        "(both are written)")
     p.add_argument("--tolerance", type=int, default=0, help="k: a hull voxel is kept when >= V-k views see it (default 0)")
     p.add_argument("--max-steps", type=int, default=None, help="fit iterations per stage (default: fit's)")
     p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame in the fit")
