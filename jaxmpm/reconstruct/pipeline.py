@@ -206,9 +206,11 @@ def _cameras(obs):
 #: The collider hull's voxel edge, in cells (dx). Measured on the 0.2 m bunny (dx = 0.05 m,
 #: 6 views of 96 px; docs/identify.md §4): identification from the hull's mesh at dx / 2
 #: missed μ by 0.13 decades, at dx / 10 by 0.009 (the truth imported: 0.050).
+#: The surfels are fitted from the dx / 2 hull's mesh: snapped onto the fine hull's one-voxel
+#: staircase their normals tilt (silhouette IoU 0.87-0.94 per view on the tests' box, against
+#: 0.92-0.96), and Taubin smoothing, which mends that, rounds a box's edges (then μ on the edge
+#: of a box came out 0.09 decades off from the mesh, 0.37 from the surfels).
 COLLIDER_VOXEL = 0.1
-#: Taubin smoothing iterations of the collider hull's mesh.
-COLLIDER_SMOOTHING = 10
 
 
 def reconstruct_colliders(
@@ -225,8 +227,8 @@ def reconstruct_colliders(
     """The collider from ``data/c_{view}.png``: hull → mesh, and (``surfels``) fitted surfels.
 
     The hull is carved twice: over the domain at dx / 2 to find the collider, then at ``voxel``
-    (default :data:`COLLIDER_VOXEL` × dx) over the collider's box; its mesh is smoothed by
-    :data:`COLLIDER_SMOOTHING` Taubin iterations.
+    (default :data:`COLLIDER_VOXEL` × dx) over the collider's box. The mesh returned is the fine
+    hull's; the surfels are fitted from the coarse one's.
 
     Returns ``(hull, mesh, surfels)`` (surfels None when not asked), or ``(None, None, None)``
     when the dataset has no collider masks.
@@ -256,17 +258,11 @@ def reconstruct_colliders(
             f"{dataset.folder}: the colliders (data/c_*.png) overlap the body: {inside.mean():.0%} of the first "
             "frame's body lies inside the collider hull"
         )
-    import trimesh
-
-    mesh = hull_mesh(hull)
-    # the fine hull's one-voxel staircase tilts face normals by up to 45°: smooth it (Taubin's
-    # filter keeps the volume) — surfels snapped to the raw staircase matched the tests' box
-    # masks at IoU 0.87-0.94 per view, on the smoothed mesh 0.90-0.94 (200 surfels, 10 steps)
-    trimesh.smoothing.filter_taubin(mesh, iterations=COLLIDER_SMOOTHING)
+    mesh = hull_mesh(hull)  # raises on an empty hull
     fitted = None
-    if surfels:
-        fitted = fit_surfels(mesh, dataset.collider_masks, obs.intrinsics, obs.cam_to_world, count=surfel_count,
-                             steps=surfel_steps, progress=progress)
+    if surfels:  # on the coarse hull's mesh: see COLLIDER_VOXEL
+        fitted = fit_surfels(hull_mesh(coarse), dataset.collider_masks, obs.intrinsics, obs.cam_to_world,
+                             count=surfel_count, steps=surfel_steps, progress=progress)
     return hull, mesh, fitted
 
 
@@ -305,7 +301,8 @@ def reconstruct(
     table, ppc, name = body_material(dataset, material)
     points, hull, iou = reconstruct_body(dataset, spec, ppc=ppc, tolerance=tolerance)
     _check_floors(points, spec["colliders"], dataset.folder)
-    _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=surfels, surfel_count=surfel_count, surfel_steps=surfel_steps, progress=progress)
+    _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=surfels, surfel_count=surfel_count,
+                                          surfel_steps=surfel_steps, progress=progress)
     spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
     obs = dataset.observation
     fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"], gravity=spec["gravity"])
