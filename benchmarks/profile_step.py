@@ -130,8 +130,7 @@ def main(argv=None) -> int:
     bwd, bwd_wall, bwd_cpu = profile(gradient, (params, state), args.repeats)
 
     f_stage, b_stage = by_stage(fwd), by_stage(bwd)
-    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
-          f"(summed over XLA's threads), {args.repeats} calls\n")
+    _print_header(args, model)
     print("| stage | step: forward | gradient: forward part | gradient: backward part | backward ÷ forward |")
     print("|---|---|---|---|---|")
     for s in (*STAGES, "outside the step"):
@@ -143,17 +142,30 @@ def main(argv=None) -> int:
           f"{sum(v for (s, d), v in b_stage.items() if d == 'backward'):.2f} | |")
     print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; gradient {bwd_wall:.2f} ms wall / "
           f"{bwd_cpu:.2f} ms CPU per call (gradient ÷ step: {bwd_cpu / fwd_cpu:.1f}x CPU)")
-    print(f"\nthe {args.top} most expensive ops of the gradient:\n")
+    _print_top_ops(bwd, args.top, "the gradient")
+    _write_json(args, fwd, "gradient", bwd, [fwd_wall, bwd_wall], [fwd_cpu, bwd_cpu])
+    return 0
+
+
+def _print_header(args, model, extra: str = "") -> None:
+    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
+          f"(summed over XLA's threads), {args.repeats} calls{extra}\n")
+
+
+def _print_top_ops(table: dict, top: int, what: str) -> None:
+    """The ``top`` most expensive ops of a profile ``table``, with their stage and pass."""
+    print(f"\nthe {top} most expensive ops of {what}:\n")
     print("| CPU ms | op | stage | pass | op_name |")
     print("|---|---|---|---|---|")
-    for op, row in sorted(bwd.items(), key=lambda kv: -kv[1]["ms"])[: args.top]:
+    for op, row in sorted(table.items(), key=lambda kv: -kv[1]["ms"])[:top]:
         stage, direction = stage_of(row["op_name"])
         print(f"| {row['ms']:.2f} | {op} | {stage} | {direction} | {row['op_name'][-90:]} |")
+
+
+def _write_json(args, fwd: dict, name: str, other: dict, wall_ms: list, cpu_ms: list) -> None:
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"args": vars(args), "forward": fwd, "gradient": bwd, "wall_ms": [fwd_wall, bwd_wall],
-                       "cpu_ms": [fwd_cpu, bwd_cpu]}, fh, indent=1)
-    return 0
+            json.dump({"args": vars(args), "forward": fwd, name: other, "wall_ms": wall_ms, "cpu_ms": cpu_ms}, fh, indent=1)
 
 
 def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
@@ -179,8 +191,7 @@ def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
 
     tan, tan_wall, tan_cpu = profile(push, (params, dynamic, tangents), args.repeats)
     f_stage, t_stage = by_stage(fwd), by_stage(tan)
-    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
-          f"(summed over XLA's threads), {args.repeats} calls; forward mode with {args.tangents} tangents\n")
+    _print_header(args, model, f"; forward mode with {args.tangents} tangents")
     print("| stage | step | jvp of the step (primal + tangents) | jvp ÷ step |")
     print("|---|---|---|---|")
     for s in (*STAGES, "outside the step"):
@@ -191,15 +202,8 @@ def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
     print(f"| **total in ops** | {f_sum:.2f} | {t_sum:.2f} | {t_sum / f_sum:.1f} |")
     print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; jvp {tan_wall:.2f} ms wall / "
           f"{tan_cpu:.2f} ms CPU per call")
-    print(f"\nthe {args.top} most expensive ops of the jvp:\n")
-    print("| CPU ms | op | stage | op_name |")
-    print("|---|---|---|---|")
-    for op, row in sorted(tan.items(), key=lambda kv: -kv[1]["ms"])[: args.top]:
-        print(f"| {row['ms']:.2f} | {op} | {stage_of(row['op_name'])[0]} | {row['op_name'][-90:]} |")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump({"args": vars(args), "forward": fwd, "jvp": tan, "wall_ms": [fwd_wall, tan_wall],
-                       "cpu_ms": [fwd_cpu, tan_cpu]}, fh, indent=1)
+    _print_top_ops(tan, args.top, "the jvp")
+    _write_json(args, fwd, "jvp", tan, [fwd_wall, tan_wall], [fwd_cpu, tan_cpu])
     return 0
 
 
