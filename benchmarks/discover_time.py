@@ -1,13 +1,15 @@
 """How long `jaxmpm discover` takes on a 2D case of ~1,500 particles and 6,000 steps (issue 15,
 target 4: <= 10 min on 2 idle cores).
 
-A 2D elastic block (E = 3 kPa, dx = 9 mm, ppc 4: 1,452 particles) thrown onto a slip floor,
-60 frames x 100 substeps, tracked with 1 mm noise; the data hide a gravity error (delta g =
-(0, -2) m/s^2 or ``--delta``, ``--hidden gravity``) or nothing (``--hidden none``, the control). `discover`
+A 2D elastic block (E = 3 kPa or ``--E``, dx = 9 mm, ppc 4: 1,452 particles) thrown at
+(1.5, 0.5) m/s (``--velocity``) onto a slip floor (``--contact sticky``), 60 frames x 100
+substeps, tracked with 1 mm noise; the data hide a gravity error (delta g = (0, -2) m/s^2 or
+``--delta``, ``--hidden gravity``) or nothing (``--hidden none``, the control). `discover`
 gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
 check). Prints the verdict, the cause, the held-out gain, the wall and CPU seconds.
 
     PYTHONPATH=. python benchmarks/discover_time.py [--hidden gravity|none] [--delta 1,0] [--json out.json]
+        [--E 3e4 --velocity 0.5,0 --contact sticky]   # a case converged in dt (dt/2 moves it 7 mm)
 """
 
 from __future__ import annotations
@@ -34,14 +36,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--hidden", choices=("gravity", "none"), default="gravity")
     ap.add_argument("--delta", default="0,-2", help="the hidden gravity error, m/s^2 (x,y)")
+    ap.add_argument("--E", type=float, default=3e3, help="Young's modulus, Pa")
+    ap.add_argument("--velocity", default="1.5,0.5", help="the throw, m/s (x,y)")
+    ap.add_argument("--contact", default="slip", choices=("slip", "sticky"), help="the floor's contact")
     ap.add_argument("--dx", type=float, default=0.009)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--substeps", type=int, default=100)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    spec = block_spec(2, {"model": "elastic", "E": 3e3, "nu": 0.3}, dx=args.dx, frames=args.frames,
-                      substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": "slip"},
-                      lo=[0.2, 0.2], hi=[0.4, 0.35], velocity=[1.5, 0.5], ppc=4)
+    velocity = [float(v) for v in args.velocity.split(",")]
+    spec = block_spec(2, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
+                      substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": args.contact},
+                      lo=[0.2, 0.2], hi=[0.4, 0.35], velocity=velocity, ppc=4)
     scene = load_scene(spec)
     m, p = scene.model, scene.params
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
@@ -55,7 +61,8 @@ def main() -> None:
           f"= {args.frames * args.substeps} steps; hidden: {args.hidden}", flush=True)
     t0, c0 = time.perf_counter(), time.process_time()
     result = discover(m, p, obs, progress=lambda line: print(f"  [{time.perf_counter() - t0:7.1f} s] {line}", flush=True))
-    row = {"hidden": args.hidden, "delta": delta if hidden else None, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
+    row = {"hidden": args.hidden, "delta": delta if hidden else None, "E": args.E, "velocity": velocity,
+           "contact": args.contact, "frames": args.frames, "substeps": args.substeps, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
            "discrepancy": bool(result.discrepancy), "cause": result.cause, "causes": list(result.causes),
            "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}

@@ -30,7 +30,10 @@ import numpy as np
 
 
 def main() -> None:
+    import jax.numpy as jnp
+
     from jaxmpm.bench_sysid import FIT_NAMES, errors
+    from jaxmpm.identify.parameters import get_param, resolve_name, set_param
     from jaxmpm.reconstruct import read_dataset, reconstruct, silhouette_iou, write_scene
     from jaxmpm.reconstruct.collider import chamfer_distance
     from jaxmpm.reconstruct.pipeline import identify_material, simulated_masks
@@ -52,6 +55,12 @@ def main() -> None:
     ap.add_argument("--colliders", default="disks,mesh,true", help="reconstructed (disks, mesh) and/or the true one")
     ap.add_argument("--renderer", default="surfels", help="the fit's renderer (the data are rendered with surfels)")
     ap.add_argument("--num-pixels", type=int, default=256)
+    ap.add_argument("--refine", type=int, default=0, help="Adam steps of the first-frame refinement (0: none)")
+    ap.add_argument("--rgb", type=float, default=0.0, help="weight of the masked-RGB term in the fit")
+    ap.add_argument("--at-truth", action="store_true",
+                    help="also simulate the reconstructed scene with the true parameters and velocity and report its "
+                         "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
+                         "(or the reconstruction) prefer the values found")
     ap.add_argument("--out", default=None, help="append the rows to this .jsonl file")
     args = ap.parse_args()
     spec = drop_scene(args.collider, material=args.material)
@@ -67,7 +76,8 @@ def main() -> None:
         obs = ds.observation
         for kind in args.colliders.split(","):
             t0, c0 = time.perf_counter(), time.process_time()
-            rec = reconstruct(ds, args.material, tolerance=args.tolerance, collider="mesh" if kind == "mesh" else "disks")
+            rec = reconstruct(ds, args.material, tolerance=args.tolerance, collider="mesh" if kind == "mesh" else "disks",
+                              refine=args.refine)
             chamfer = {"mesh": chamfer_distance(rec.collider_mesh.sample(20000, seed=0), true_surface),
                        "disks": None if rec.surfels is None else chamfer_distance(rec.surfels.centers, true_surface)}
             if kind == "true":  # the true collider imported in place of the reconstruction
@@ -76,11 +86,11 @@ def main() -> None:
                 rec.spec["colliders"][-1] = {**COLLIDERS[args.collider], "name": "collider", "contact": "sticky"}
             scene = load_scene(write_scene(rec, Path(tmp) / f"scene_{kind}"))
             result = identify_material(scene, obs, names + ["velocity"], max_steps=args.max_steps,
-                                       renderer=args.renderer, num_pixels=args.num_pixels)
+                                       renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb)
             iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps), obs.masks)
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
-                "tolerance": args.tolerance, "renderer": args.renderer, "num_pixels": args.num_pixels,
+                "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb, "renderer": args.renderer, "num_pixels": args.num_pixels,
                 "views": args.views, "res": args.res, "min_elevation": args.min_elevation, "max_steps": args.max_steps,
                 "truth": truth, "values": {n: float(np.ravel(result.values[n])[0]) for n in names},
                 "errors": errors(names, result.values, truth),
@@ -93,6 +103,13 @@ def main() -> None:
                 "iterations": int(result.iterations), "notes": list(result.notes),
                 "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
             }
+            if args.at_truth:
+                at_truth = result.params
+                for n, value in {**truth, "velocity": truth_v}.items():
+                    path = resolve_name(scene.model, at_truth, n)
+                    at_truth = set_param(at_truth, path, jnp.asarray(value, jnp.asarray(get_param(at_truth, path)).dtype))
+                iou_t = silhouette_iou(simulated_masks(scene, at_truth, obs, result.substeps), obs.masks)
+                row.update(iou_truth_mean=float(iou_t.mean()), iou_truth_min=float(iou_t.min()))
             rows.append(row)
             print(json.dumps(row), flush=True)
     print("\n| material | collider | degrade | used collider | errors | velocity error (m/s) | Chamfer mesh / disks (m) "

@@ -107,6 +107,56 @@ def test_rasterised_mesh_silhouettes_match_ray_casting(collider):
         assert silhouette_iou(raster, box_masks(cams)).min() > 0.98
 
 
+def _textured_sphere(views=4, res=64, radius=0.1, spacing=0.025):
+    """A sphere of dense coloured particles rendered with surfels from a few views, and the
+    particles of its visual hull on the body lattice."""
+    from jaxmpm.reconstruct import hull_particles
+    from jaxmpm.render import render_views
+
+    g = np.arange(-radius + spacing / 4, radius, spacing / 2)
+    cube = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    truth = CENTER + cube[np.linalg.norm(cube, axis=1) <= radius]
+    colors = 0.5 + 0.4 * np.sin(2 * np.pi * truth / 0.08 + np.arange(3))
+    cams = pacnerf_rig(views, radius=1.0, target=tuple(CENTER), res=res, min_elevation_deg=15.0, max_elevation_deg=60.0)
+    r = render_views(truth[None].astype(np.float32), cams, "surfels", colors=colors, spacing=spacing / 2)
+    K, P = r["intrinsics"], r["cam_to_world"]
+    hull = visual_hull(r["masks"][:, 0], K, P, CENTER - 2 * radius, CENTER + 2 * radius, spacing)
+    return hull_particles(hull, spacing), r["masks"][:, 0], r["images"][:, 0], K, P
+
+
+def test_refinement_trims_a_few_view_hull_towards_the_body():
+    """Four views leave a sphere's hull ~13 % too large; the refinement removes particles,
+    nearly all of them outside the true sphere, and the silhouettes still match."""
+    from jaxmpm.reconstruct import refine_body
+
+    spacing, radius = 0.025, 0.1
+    points, masks, images, K, P = _textured_sphere(spacing=spacing, radius=radius)
+    truth_volume = 4 / 3 * np.pi * radius**3
+    outside = np.linalg.norm(points - CENTER, axis=1) > radius
+    assert len(points) * spacing**3 > 1.08 * truth_volume and outside.sum() >= 10  # the hull's excess
+    for imgs in (None, images):
+        ref = refine_body(points, masks, K, P, spacing, images=imgs, steps=40)
+        removed = ref.opacity < 0.5
+        assert ref.removed == removed.sum() >= 6
+        assert outside[removed].mean() >= 0.8  # what goes is the excess
+        assert abs(len(ref.points) * spacing**3 / truth_volume - 1) < 0.8 * abs(len(points) * spacing**3 / truth_volume - 1)
+        assert ref.iou_after.min() >= ref.iou_before.min() - 0.01
+        assert ref.loss[-1] < 0.95 * ref.loss[0]
+        assert (ref.colors is None) == (imgs is None)
+        if imgs is not None:
+            assert ref.colors.shape == (len(ref.points), 3) and np.all((ref.colors >= 0) & (ref.colors <= 1))
+
+
+def test_refinement_refuses_mismatched_inputs():
+    from jaxmpm.reconstruct import refine_body
+
+    points, masks, images, K, P = _textured_sphere(views=2, res=16)
+    with pytest.raises(ObservationError, match="images have shape"):
+        refine_body(points, masks, K, P, 0.025, images=images[:, :8])
+    with pytest.raises(ObservationError, match="points must have shape"):
+        refine_body(points[:0], masks, K, P, 0.025)
+
+
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     folder, x = render_drop_dataset(tmp_path_factory.mktemp("tiny") / "ds", views=6, res=96)
@@ -274,13 +324,34 @@ def test_surfel_collider_holds_material_like_the_box(tmp_path, elevation, tolera
 def test_identify_cli_end_to_end(dataset, tmp_path):
     out = tmp_path / "id"
     code = main(["identify", str(dataset[0]), "--material", "newtonian", "--out", str(out), "--max-steps", "3",
-                 "--surfel-steps", "20"])
+                 "--surfel-steps", "20", "--refine", "10", "--rgb", "0.5"])
     assert code in (0, 1)
     fit = json.loads((out / "fit.json").read_text())
     assert {"params", "std", "loss", "seconds", "iterations"} <= set(fit)
     assert "mu" in fit["params"] and "velocity" in fit["params"]
     assert (out / "overlay.mp4").stat().st_size > 0
-    assert "Silhouette IoU over time" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "Silhouette IoU over time" in report and "first-frame refinement (masks and RGB" in report
+
+
+def test_reconstruction_uses_the_refined_body(dataset, tmp_path):
+    ds = read_dataset(dataset[0])
+    with pytest.raises(ObservationError, match="refine"):
+        reconstruct(ds, "newtonian", refine=-1, surfels=False)
+    recon = reconstruct(ds, "newtonian", refine=10, surfels=False)
+    ref = recon.refinement
+    assert ref is not None and ref.colors is not None  # the dataset has colour images
+    np.testing.assert_array_equal(recon.points, ref.points)
+    np.testing.assert_array_equal(recon.body_iou, ref.iou_after)
+    assert load_scene(write_scene(recon, tmp_path / "s")).model.num_particles == len(ref.points)
+
+
+def test_a_negative_rgb_weight_is_refused_before_any_work(dataset, tmp_path):
+    from jaxmpm.reconstruct import identify
+
+    with pytest.raises(ObservationError, match="RGB weight"):
+        identify(dataset[0], "newtonian", tmp_path / "out", rgb=-1.0)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_without_a_hint_the_defaults_hold_the_body(dataset, tmp_path):

@@ -405,26 +405,13 @@ def particle_colors(model: Model, obs: Observation, cams=None) -> np.ndarray:
     particles take the colour of the surface in front of them)."""
     if obs.images is None:
         raise ObservationError("particle colours from images need 'images' in the observation")
+    from ..render import mean_colors
+
     cams = _check_cameras(obs) if cams is None else cams
     x = np.concatenate([np.asarray(b.x0, float) for b in model.bodies])
     images = np.asarray(obs.images)[:, 0].astype(float) / 255.0
     masks = None if obs.masks is None else np.asarray(obs.masks)[:, 0] > 127
-    V, H, W = images.shape[:3]
-    total, count = np.zeros((len(x), 3)), np.zeros(len(x))
-    K, P = np.asarray(cams.K, float), np.asarray(cams.cam_to_world, float)
-    for v in range(V):
-        R, o = P[v, :3, :3], P[v, :3, 3]
-        pc = (x - o) @ R
-        z = pc[:, 2]
-        uv = (pc @ K[v].T)[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None]
-        col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-        ok = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
-        if masks is not None:
-            ok[ok] &= masks[v, row[ok], col[ok]]
-        total[ok] += images[v, row[ok], col[ok]]
-        count[ok] += 1
-    mean = total.sum(0) / max(count.sum(), 1)
-    return np.where(count[:, None] > 0, total / np.maximum(count, 1)[:, None], mean).astype(np.float32)
+    return mean_colors(x, images, masks, cams.K, cams.cam_to_world).astype(np.float32)
 
 
 # =========================================================================== terms

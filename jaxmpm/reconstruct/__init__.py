@@ -25,3 +25,5 @@ from .pipeline import reconstruct_colliders as reconstruct_colliders
 from .pipeline import scene_skeleton as scene_skeleton
 from .pipeline import simulated_masks as simulated_masks
 from .pipeline import write_scene as write_scene
+from .refine import BodyRefinement as BodyRefinement
+from .refine import refine_body as refine_body

@@ -23,6 +23,11 @@ def add_identify_parser(sub, func) -> None:
     p.add_argument("--max-steps", type=int, default=None, help="fit iterations per stage (default: fit's)")
     p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame in the fit")
     p.add_argument("--surfel-steps", type=int, default=80, help="Adam steps of the collider surfel fit")
+    p.add_argument("--refine", type=int, default=0, metavar="STEPS",
+                   help="Adam steps of the first-frame refinement of the body's particles on the masks and RGB "
+                        "(default 0: the visual hull's particles)")
+    p.add_argument("--rgb", type=float, default=0.0, metavar="WEIGHT",
+                   help="weight of the masked-RGB term in the fit, beside the silhouettes' 1 (default 0)")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.set_defaults(func=func)
 
@@ -54,7 +59,7 @@ def run_identify(args) -> int:
     try:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
-                       surfel_steps=args.surfel_steps, video=not args.no_video, stage=stage, progress=progress)
+                       surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb, video=not args.no_video, stage=stage, progress=progress)
     finally:
         for bar in bars.values():
             bar.close()

@@ -48,25 +48,6 @@ class Hull:
         return out
 
 
-def project_points(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points with one pinhole camera (OpenCV axes, NumPy; no gradient).
-
-    Arguments:
-        points: ``(N, 3)`` world points, m.
-        K: ``(3, 3)`` intrinsics.
-        cam_to_world: ``(4, 4)`` pose, OpenCV axes.
-
-    Returns:
-        ``(uv (N, 2), depth (N,))``: pixel coordinates (column, row; pixel centres at +0.5)
-        and camera z-depth (≤ 0 behind the camera).
-    """
-    R, c = cam_to_world[:3, :3], cam_to_world[:3, 3]
-    pc = (points - c) @ R
-    z = pc[:, 2]
-    hom = pc @ K.T
-    return hom[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None], z
-
-
 def inside_masks(points: np.ndarray, masks: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
     """Per view, whether each point projects inside that view's mask.
 
@@ -78,12 +59,12 @@ def inside_masks(points: np.ndarray, masks: np.ndarray, intrinsics: np.ndarray, 
     Returns:
         ``(V, N)`` bool; a point behind a camera or outside its image counts as outside.
     """
+    from ..render.camera import pixel_of
+
     V, H, W = masks.shape
     out = np.zeros((V, len(points)), bool)
     for v in range(V):
-        uv, z = project_points(points, intrinsics[v], cam_to_world[v])
-        col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+        row, col, ok = pixel_of(points, intrinsics[v], cam_to_world[v], H, W)
         out[v, ok] = masks[v, row[ok], col[ok]]
     return out
 

@@ -28,6 +28,7 @@ from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
+from .refine import BodyRefinement, refine_body
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
 DEFAULT_PPC = 8
@@ -62,6 +63,8 @@ class Reconstruction:
             starting velocity guess, and the gravity when the hint gives none.
         collider_roof: ``(height m, lowest view's elevation degrees)``: how high a roof the
             views may have left on the collider's top (:func:`roof_height`), or None.
+        refinement: the first-frame refinement (:func:`refine_body`; ``points`` and
+            ``body_iou`` are then the refined ones), or None.
     """
 
     spec: dict
@@ -73,6 +76,7 @@ class Reconstruction:
     collider: str | None = None
     free_fall: FreeFall | None = None
     collider_roof: tuple[float, float] | None = None
+    refinement: BodyRefinement | None = None
 
 
 #: Free-fall frames needed before the silhouettes' gravity replaces the default: a parabola
@@ -158,6 +162,11 @@ def body_material(dataset: Dataset, material: str) -> tuple[dict, int, str]:
     return table, int(body.get("ppc", DEFAULT_PPC)), str(body.get("name", "body"))
 
 
+def particle_spacing(spec: dict, ppc: int) -> float:
+    """The body lattice's spacing, m: ``dx / ppc^(1/3)``."""
+    return float(spec["dx"]) / ppc ** (1.0 / 3.0)
+
+
 def reconstruct_body(
     dataset: Dataset, spec: dict, *, ppc: int = DEFAULT_PPC, tolerance: int = 0, voxel: float | None = None
 ) -> tuple[np.ndarray, Hull, np.ndarray]:
@@ -182,7 +191,7 @@ def reconstruct_body(
     from ..render import render_views
 
     obs = dataset.observation
-    spacing = float(spec["dx"]) / ppc ** (1.0 / 3.0)
+    spacing = particle_spacing(spec, ppc)
     voxel = spacing if voxel is None else float(voxel)
     hull = visual_hull(obs.masks[:, 0], obs.intrinsics, obs.cam_to_world, spec["domain"]["lo"], spec["domain"]["hi"],
                        voxel, tolerance=tolerance)
@@ -275,6 +284,7 @@ def reconstruct(
     surfels: bool = True,
     surfel_count: int = 600,
     surfel_steps: int = 80,
+    refine: int = 0,
     progress: Callable[[int, float], None] | None = None,
 ) -> Reconstruction:
     """Body and colliders from the views, as a scene spec (nothing is written).
@@ -291,15 +301,26 @@ def reconstruct(
             (surfels placed on the true bunny: 0.44 off) — CPIC's disk field is the weak part.
         surfels: fit the surfels (needed for ``collider="disks"``).
         surfel_count, surfel_steps: surfels placed and Adam steps.
-        progress: ``progress(step, loss)`` of the surfel fit.
+        refine: Adam steps of the first-frame refinement (:func:`refine_body`, on the masks
+            and the RGB of the first frame); 0 (default) keeps the hull's particles.
+        progress: ``progress(step, loss)`` of the refinement and the surfel fit.
     """
     if collider not in ("disks", "mesh"):
         raise ObservationError(f"collider must be 'disks' or 'mesh', got {collider!r}")
     if collider == "disks" and not surfels:
         raise ObservationError("collider='disks' needs the surfels (surfels=True)")
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
+        raise ObservationError(f"refine (Adam steps) must be an integer >= 0, got {refine!r}")
     spec = scene_skeleton(dataset, material)
     table, ppc, name = body_material(dataset, material)
     points, hull, iou = reconstruct_body(dataset, spec, ppc=ppc, tolerance=tolerance)
+    refined = None
+    if refine > 0:
+        obs = dataset.observation
+        first_rgb = None if obs.images is None else obs.images[:, 0]
+        refined = refine_body(points, obs.masks[:, 0], obs.intrinsics, obs.cam_to_world, particle_spacing(spec, ppc),
+                              images=first_rgb, steps=refine, progress=progress)
+        points, iou = refined.points, refined.iou_after
     _check_floors(points, spec["colliders"], dataset.folder)
     _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=surfels, surfel_count=surfel_count,
                                           surfel_steps=surfel_steps, progress=progress)
@@ -317,7 +338,7 @@ def reconstruct(
         entry = {"type": "disks", "path": "collider_disks.npz"} if collider == "disks" else {"type": "mesh", "path": "collider.obj"}
         spec["colliders"].append({**entry, "name": "collider", "contact": "sticky"})
     return Reconstruction(spec=spec, points=points, body_hull=hull, body_iou=iou, collider_mesh=mesh, surfels=surf,
-                          collider=used, free_fall=fall, collider_roof=roof)
+                          collider=used, free_fall=fall, collider_roof=roof, refinement=refined)
 
 
 def _check_floors(points: np.ndarray, planes: list[dict], folder) -> None:
@@ -381,7 +402,7 @@ SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
 
 
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
-                      renderer: str = RENDERER, progress=None, log=None):
+                      renderer: str = RENDERER, rgb: float = 0.0, colors="auto", progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
     pre-contact frames, then the material, each log10 parameter first scanned over
@@ -391,10 +412,19 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     body was reconstructed against (its first-frame IoU, :data:`RENDERER`): a renderer
     whose silhouette of the same particles is larger is explained by a body that shrinks
     (measured: the volume renderer's silhouettes of the true particles cover 8 % more pixels
-    than the surfels' and the fit took kappa from 1e5 to 68 Pa; docs/identify.md)."""
+    than the surfels' and the fit took kappa from 1e5 to 68 Pa; docs/identify.md).
+
+    ``rgb``: the weight of the masked-RGB term beside the silhouettes' (weight 1; default 0,
+    silhouettes only, as GIC); ``colors``: the particles' colours for it (``"auto"``: each
+    particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`)."""
     from ..fit import FitConfig, fit
 
-    config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES)
+    if not (np.isfinite(rgb) and rgb >= 0):
+        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
+    if rgb > 0 and observation.images is None:
+        raise ObservationError("an RGB weight needs images in the observation")
+    config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
+                       weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors)
     return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
 
 
@@ -487,6 +517,11 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
               f"- body: {len(recon.points)} particles, visual-hull volume {recon.body_hull.volume:.4g} m³",
               "- first-frame IoU per view (observed vs re-rendered particles): "
               + ", ".join(f"{x:.3f}" for x in recon.body_iou)]
+    ref = recon.refinement
+    if ref is not None:
+        lines.append(f"- first-frame refinement ({'masks and RGB' if ref.colors is not None else 'masks'}, "
+                     f"{len(ref.loss)} steps): {ref.removed} of {len(ref.opacity)} hull particles removed; IoU per view "
+                     f"before: " + ", ".join(f"{x:.3f}" for x in ref.iou_before))
     if recon.collider_mesh is not None:
         lines.append(f"- collider mesh: {len(recon.collider_mesh.faces)} faces, volume {recon.collider_mesh.volume:.4g} m³")
     if recon.surfels is not None:
@@ -536,6 +571,8 @@ def identify(
     max_steps: int | None = None,
     num_pixels: int = 256,
     surfel_steps: int = 80,
+    refine: int = 0,
+    rgb: float = 0.0,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
@@ -550,8 +587,9 @@ def identify(
             ``overlay.mp4``.
         params: parameter names (default: the material's, plus ``velocity``).
         hint: ``scene_hint.toml`` path or dict (default ``folder/scene_hint.toml``).
-        tolerance, collider, surfel_steps: see :func:`reconstruct`.
-        max_steps, num_pixels: of the fit.
+        tolerance, collider, surfel_steps, refine: see :func:`reconstruct`.
+        max_steps, num_pixels, rgb: of the fit (:func:`identify_material`; with ``refine``
+            and RGB the particles' fitted colours are the RGB term's).
         video: write the overlay video.
         stage: called with the name of each stage as it starts.
         progress: ``progress(step, loss)`` within the surfel fit and the material fit.
@@ -570,8 +608,12 @@ def identify(
         raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
     names = list(params) if params else list(MATERIALS[material].required()) + ["velocity"]
     say("reconstruct")
+    if not (np.isfinite(rgb) and rgb >= 0):
+        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
+    if rgb > 0 and dataset.observation.images is None:
+        raise ObservationError(f"{folder}: an RGB weight needs the frames' colour images")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
-                        progress=progress)
+                        refine=refine, progress=progress)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
@@ -579,8 +621,9 @@ def identify(
         say("write scene")
         scene = load_scene(write_scene(recon, staging))
         say("fit")
+        colors = "auto" if recon.refinement is None or recon.refinement.colors is None else recon.refinement.colors
         result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
-                                   progress=progress)
+                                   rgb=rgb, colors=colors, progress=progress)
         (staging / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
         say("evaluate")
         sim = simulated_masks(scene, result.params, dataset.observation, result.substeps)

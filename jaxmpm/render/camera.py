@@ -607,3 +607,59 @@ def check_image_size(cameras: Camera, images: Any, *, rgb: bool, what: str = "im
         raise ObservationError(
             f"{what} of shape {shape} do not have a leading axis of {nv} views (one per camera)"
         )
+
+
+def project_points(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points with one pinhole camera (OpenCV axes, NumPy; no gradient).
+
+    Arguments:
+        points: ``(N, 3)`` world points, m.
+        K: ``(3, 3)`` intrinsics.
+        cam_to_world: ``(4, 4)`` pose, OpenCV axes.
+
+    Returns:
+        ``(uv (N, 2), depth (N,))``: pixel coordinates (column, row; pixel centres at +0.5)
+        and camera z-depth (≤ 0 behind the camera).
+    """
+    points, K, cam_to_world = (np.asarray(a, float) for a in (points, K, cam_to_world))
+    R, c = cam_to_world[:3, :3], cam_to_world[:3, 3]
+    pc = (points - c) @ R
+    z = pc[:, 2]
+    hom = pc @ K.T
+    return hom[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None], z
+
+
+def pixel_of(points: np.ndarray, K: np.ndarray, cam_to_world: np.ndarray, height: int, width: int):
+    """The pixel each point projects into: ``(row (N,), col (N,), seen (N,) bool)``; ``seen``
+    is False behind the camera and outside the image (row and col are then meaningless)."""
+    uv, z = project_points(points, K, cam_to_world)
+    col, row = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    return row, col, (z > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+
+
+def mean_colors(points: np.ndarray, images: np.ndarray, masks: np.ndarray | None, intrinsics: np.ndarray,
+                cam_to_world: np.ndarray) -> np.ndarray:
+    """Each point's mean colour over the views where it projects inside the mask (every view
+    that sees it when ``masks`` is None); occlusion is ignored, so an interior point takes the
+    colour of the surface in front of it. A point no view sees gets the mean of the others.
+
+    Arguments:
+        points: ``(N, 3)`` m.
+        images: ``(V, H, W, 3)`` colours (any scale; the result has it).
+        masks: ``(V, H, W)`` bool, or None.
+        intrinsics, cam_to_world: ``(V, 3, 3)``, ``(V, 4, 4)`` (OpenCV axes).
+
+    Returns:
+        ``(N, 3)`` float64.
+    """
+    images = np.asarray(images, float)
+    V, H, W = images.shape[:3]
+    total, count = np.zeros((len(points), 3)), np.zeros(len(points))
+    for v in range(V):
+        row, col, ok = pixel_of(points, intrinsics[v], cam_to_world[v], H, W)
+        if masks is not None:
+            ok[ok] &= np.asarray(masks[v], bool)[row[ok], col[ok]]
+        total[ok] += images[v, row[ok], col[ok]]
+        count[ok] += 1
+    mean = total.sum(0) / max(count.sum(), 1.0)
+    return np.where(count[:, None] > 0, total / np.maximum(count, 1.0)[:, None], mean)
