@@ -29,6 +29,23 @@ from pathlib import Path
 import numpy as np
 
 
+def print_table(rows: list[dict]) -> None:
+    """The rows as one markdown table (errors: |Δlog10| for moduli and viscosities, degrees for
+    the friction angle, raw for ν)."""
+    print("\n| material | collider | degradation | used collider | refine / rgb | errors | velocity error (m/s) "
+          "| Chamfer mesh / disks (mm) | IoU frame 0 min | IoU mean / min (at the truth) | iterations | wall / CPU s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        errs = ", ".join(f"{n} {e:.2g}" if e >= 0.01 else f"{n} {e:.1e}" for n, e in r["errors"].items())
+        truth = f" ({r['iou_truth_mean']:.3f} / {r['iou_truth_min']:.3f})" if "iou_truth_mean" in r else ""
+        disks = "–" if r["chamfer_disks"] is None else f"{1e3 * r['chamfer_disks']:.1f}"
+        print(f"| {r['material']} | {r['collider_shape']} | {r['degrade']} | {r['collider']} | "
+              f"{r.get('refine', 0)} / {r.get('rgb', 0.0):g} | {errs} | {r['velocity_error']:.3f} | "
+              f"{1e3 * r['chamfer_mesh']:.1f} / {disks} | {r['body_iou_min']:.3f} | "
+              f"{r['iou_mean']:.3f} / {r['iou_min']:.3f}{truth} | {r['iterations']} | "
+              f"{r['seconds']:.0f} / {r['cpu_seconds']:.0f} |")
+
+
 def main() -> None:
     import jax.numpy as jnp
 
@@ -62,7 +79,12 @@ def main() -> None:
                          "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
                          "(or the reconstruction) prefer the values found")
     ap.add_argument("--out", default=None, help="append the rows to this .jsonl file")
+    ap.add_argument("--table", nargs="+", default=None, metavar="JSONL",
+                    help="only print the rows of these .jsonl files as one markdown table")
     args = ap.parse_args()
+    if args.table:
+        print_table([json.loads(line) for path in args.table for line in Path(path).read_text().splitlines() if line])
+        return
     spec = drop_scene(args.collider, material=args.material)
     truth = MATERIAL_TRUTHS[args.material]
     truth_v = np.asarray(spec["bodies"][0]["velocity"], float)
@@ -87,7 +109,9 @@ def main() -> None:
             scene = load_scene(write_scene(rec, Path(tmp) / f"scene_{kind}"))
             result = identify_material(scene, obs, names + ["velocity"], max_steps=args.max_steps,
                                        renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb)
-            iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps), obs.masks)
+            evaluation_notes: list[str] = []
+            iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps, notes=evaluation_notes),
+                                 obs.masks)
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
                 "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb, "renderer": args.renderer, "num_pixels": args.num_pixels,
@@ -97,10 +121,10 @@ def main() -> None:
                 "velocity": np.asarray(result.values["velocity"]).tolist(),
                 "velocity_error": float(np.linalg.norm(np.asarray(result.values["velocity"]) - truth_v)),
                 "chamfer_mesh": chamfer["mesh"], "chamfer_disks": chamfer["disks"],
-                "body_iou_min": float(np.min(rec.body_iou)),
+                "body_iou_min": float(np.min(rec.body_iou)), "particles": len(rec.points),
                 "free_fall_frames": rec.free_fall.frames,
                 "iou_mean": float(iou.mean()), "iou_min": float(iou.min()), "converged": bool(result.converged),
-                "iterations": int(result.iterations), "notes": list(result.notes),
+                "iterations": int(result.iterations), "notes": list(result.notes) + evaluation_notes,
                 "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
             }
             if args.at_truth:
@@ -112,14 +136,7 @@ def main() -> None:
                 row.update(iou_truth_mean=float(iou_t.mean()), iou_truth_min=float(iou_t.min()))
             rows.append(row)
             print(json.dumps(row), flush=True)
-    print("\n| material | collider | degrade | used collider | errors | velocity error (m/s) | Chamfer mesh / disks (m) "
-          "| IoU frame 0 min | IoU mean / min | iterations | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        errs = ", ".join(f"{n} {e:.3g}" for n, e in r["errors"].items())
-        print(f"| {r['material']} | {r['collider_shape']} | {r['degrade']} | {r['collider']} | {errs} | {r['velocity_error']:.3f} | "
-              f"{r['chamfer_mesh']:.4f} / {r['chamfer_disks'] or float('nan'):.4f} | {r['body_iou_min']:.3f} | {r['iou_mean']:.3f} / {r['iou_min']:.3f} | "
-              f"{r['iterations']} | {r['seconds']:.0f} |")
+    print_table(rows)
     if args.out:
         with open(args.out, "a") as f:
             for r in rows:

@@ -346,6 +346,24 @@ def test_reconstruction_uses_the_refined_body(dataset, tmp_path):
     assert load_scene(write_scene(recon, tmp_path / "s")).model.num_particles == len(ref.points)
 
 
+def test_an_unhealthy_evaluation_halves_dt_and_says_so(dataset, tmp_path):
+    """The evaluation after a fit must not lose the fit to a rollout near an instability:
+    at 5 substeps per frame the block's stress waves cross 1.7 cells per step (unhealthy),
+    at 10 they do not."""
+    from jaxmpm.errors import SimulationError
+    from jaxmpm.reconstruct.pipeline import simulated_masks
+    from jaxmpm.step import run_frames
+
+    ds = read_dataset(dataset[0])
+    scene = load_scene(write_scene(reconstruct(ds, "newtonian", surfels=False), tmp_path / "s"))
+    with pytest.raises(SimulationError):
+        run_frames(scene.model.with_substeps(5), scene.params)
+    notes = []
+    masks = simulated_masks(scene, scene.params, ds.observation, 5, notes=notes)
+    assert masks.shape == ds.observation.masks.shape and masks.any()
+    assert len(notes) == 1 and "evaluated at 10" in notes[0]
+
+
 def test_a_negative_rgb_weight_is_refused_before_any_work(dataset, tmp_path):
     from jaxmpm.reconstruct import identify
 
