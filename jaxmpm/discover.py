@@ -743,7 +743,7 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     return rss_b, min(rss_e, rss_b), step[len(base_cols_local):]
 
 
-def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter):
+def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter, progress=None):
     """Fit base + extension from two starts and keep the better training loss: the current fit
     (base parameters may have compensated for the missing physics and sit in a poor basin) and
     the scene's own values of the base parameters; the extension starts at its linearised
@@ -765,7 +765,7 @@ def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_tr
         if np.isfinite(loss_g) and (not np.isfinite(loss_s) or loss_g < loss_s):
             start = guess
         try:
-            f = _lm(problem, start, free, entry_train, max_iter=max_iter)
+            f = _lm(problem, start, free, entry_train, max_iter=max_iter, progress=progress)
         except JaxmpmError as e:
             err = str(e)
             continue
@@ -933,7 +933,8 @@ def discover(
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
             f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c.lin_step,
-                       entry_train, max_iter)
+                       entry_train, max_iter,
+                       progress=lambda i, l, c=c: say(f"    {c.id} refit iteration {i}: training loss {l:.4e}"))
             if isinstance(f, str):
                 c.reason = f"refit failed: {f}"
                 continue

@@ -74,8 +74,10 @@ def test_drag_is_found():
 
 def test_initial_velocity_error_is_found():
     scene, obs = _hidden(THROW, "initial_velocity", {"delta": [0.3, -0.4]})
-    result = discover(scene.model, scene.params, obs, **FAST)
+    lines = []
+    result = discover(scene.model, scene.params, obs, progress=lines.append, **FAST)
     _check(result, "initial_velocity", "initial_velocity.delta", [0.3, -0.4], 0.03)
+    assert any(line.strip().startswith("initial_velocity refit iteration") for line in lines)  # a long refit shows progress
 
 
 def test_heterogeneous_stiffness_is_found():

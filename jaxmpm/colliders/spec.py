@@ -94,7 +94,8 @@ def load_mesh(path, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
         raise SceneError(f"{where}: {p!r} is not a readable mesh file{detail}") from None
     faces = getattr(raw, "faces", None)
     if faces is None or len(faces) == 0:
-        raise SceneError(f"{where}: mesh {p!r} has no faces")
+        # trimesh reads some unreadable bytes as an empty mesh (5.2: random bytes as an STL)
+        raise SceneError(f"{where}: {p!r} has no faces: an empty mesh, or not a readable mesh file")
     v = np.asarray(raw.vertices, float)
     bad = ~np.all(np.isfinite(v), axis=1)
     if np.any(bad):

@@ -59,7 +59,8 @@ def run_identify(args) -> int:
     try:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
-                       surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb, video=not args.no_video, stage=stage, progress=progress)
+                       surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb, video=not args.no_video,
+                       stage=stage, progress=progress)
     finally:
         for bar in bars.values():
             bar.close()

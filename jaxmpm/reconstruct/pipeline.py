@@ -401,6 +401,13 @@ def write_scene(recon: Reconstruction, out: str | os.PathLike) -> Path:
 SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
 
 
+def _check_rgb_weight(rgb: float, observation) -> None:
+    if not (np.isfinite(rgb) and rgb >= 0):
+        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
+    if rgb > 0 and observation.images is None:
+        raise ObservationError("an RGB weight needs the frames' colour images")
+
+
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
                       renderer: str = RENDERER, rgb: float = 0.0, colors="auto", progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
@@ -419,10 +426,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`)."""
     from ..fit import FitConfig, fit
 
-    if not (np.isfinite(rgb) and rgb >= 0):
-        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
-    if rgb > 0 and observation.images is None:
-        raise ObservationError("an RGB weight needs images in the observation")
+    _check_rgb_weight(rgb, observation)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
                        weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors)
     return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
@@ -629,11 +633,8 @@ def identify(
     if material not in MATERIALS:
         raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
     names = list(params) if params else list(MATERIALS[material].required()) + ["velocity"]
+    _check_rgb_weight(rgb, dataset.observation)
     say("reconstruct")
-    if not (np.isfinite(rgb) and rgb >= 0):
-        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
-    if rgb > 0 and dataset.observation.images is None:
-        raise ObservationError(f"{folder}: an RGB weight needs the frames' colour images")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
                         refine=refine, progress=progress)
     out = Path(out)
