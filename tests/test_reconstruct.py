@@ -347,9 +347,8 @@ def test_reconstruction_uses_the_refined_body(dataset, tmp_path):
 
 
 def test_an_unhealthy_evaluation_halves_dt_and_says_so(dataset, tmp_path):
-    """The evaluation after a fit must not lose the fit to a rollout near an instability:
-    at 5 substeps per frame the block's stress waves cross 1.7 cells per step (unhealthy),
-    at 10 they do not."""
+    """The evaluation after a fit must not lose the fit to a rollout near an instability: at
+    5 substeps per frame this scene's rollout is unhealthy (run_frames raises), at 10 it is not."""
     from jaxmpm.errors import SimulationError
     from jaxmpm.reconstruct.pipeline import simulated_masks
     from jaxmpm.step import run_frames
