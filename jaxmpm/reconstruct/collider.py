@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import ObservationError
 from .hull import Hull
+from .refine import adam_fit
 
 
 def hull_mesh(hull: Hull):
@@ -152,7 +153,6 @@ def fit_surfels(
     """
     import jax
     import jax.numpy as jnp
-    import optax
     import trimesh
 
     from ..render import Camera, SurfelRenderer
@@ -187,20 +187,7 @@ def fit_surfels(
         "log_s": jnp.zeros((len(pts), 2), jnp.float32),
         "logit": jnp.full((len(pts),), 2.0, jnp.float32),
     }
-    opt = optax.adam(learning_rate)
-    state = opt.init(theta)
-
-    @jax.jit
-    def update(theta, state):
-        value, g = jax.value_and_grad(loss)(theta)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
-            upd, state = opt.update(g, state)
-        return optax.apply_updates(theta, upd), state, value
-
-    for i in range(steps):
-        theta, state, value = update(theta, state)
-        if progress is not None:
-            progress(i, float(value))
+    theta, _ = adam_fit(loss, theta, steps, learning_rate, progress)
     x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
     # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt on a
     # face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in height,

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ObservationError
 
-__all__ = ["BodyRefinement", "refine_body"]
+__all__ = ["BodyRefinement", "adam_fit", "refine_body"]
 
 
 @dataclass
@@ -49,6 +49,33 @@ class BodyRefinement:
     def removed(self) -> int:
         """How many particles were removed."""
         return len(self.opacity) - len(self.points)
+
+
+def adam_fit(loss: Callable, theta, steps: int, learning_rate: float,
+             progress: Callable[[int, float], None] | None = None) -> tuple[object, list[float]]:
+    """``steps`` Adam steps on the pytree ``theta`` minimising the scalar ``loss(theta)``
+    (one jitted step); returns the final ``theta`` and the loss before each step, and calls
+    ``progress(step, loss)`` after each."""
+    import jax
+    import optax
+
+    opt = optax.adam(learning_rate)
+    state = opt.init(theta)
+
+    @jax.jit
+    def update(theta, state):
+        value, g = jax.value_and_grad(loss)(theta)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
+            upd, state = opt.update(g, state)
+        return optax.apply_updates(theta, upd), state, value
+
+    history = []
+    for i in range(steps):
+        theta, state, value = update(theta, state)
+        history.append(float(value))
+        if progress is not None:
+            progress(i, history[-1])
+    return theta, history
 
 
 def refine_body(
@@ -92,7 +119,6 @@ def refine_body(
     """
     import jax
     import jax.numpy as jnp
-    import optax
 
     from ..render import Camera, SurfelRenderer, mean_colors
     from .hull import silhouette_iou
@@ -130,22 +156,7 @@ def refine_body(
     if rgb is not None:
         c0 = np.clip(mean_colors(points, np.asarray(images, float) / 255.0, masks, K, P), 0.02, 0.98)
         theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
-    opt = optax.adam(learning_rate)
-    state = opt.init(theta)
-
-    @jax.jit
-    def update(theta, state):
-        value, g = jax.value_and_grad(loss)(theta)
-        with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
-            upd, state = opt.update(g, state)
-        return optax.apply_updates(theta, upd), state, value
-
-    history = []
-    for i in range(steps):
-        theta, state, value = update(theta, state)
-        history.append(float(value))
-        if progress is not None:
-            progress(i, history[-1])
+    theta, history = adam_fit(loss, theta, steps, learning_rate, progress)
     opacity = np.asarray(jax.nn.sigmoid(theta["logit"]), float)
     keep = opacity >= threshold
     if not keep.any():
