@@ -47,10 +47,8 @@ def print_table(rows: list[dict]) -> None:
 
 
 def main() -> None:
-    import jax.numpy as jnp
-
     from jaxmpm.bench_sysid import FIT_NAMES, errors
-    from jaxmpm.identify.parameters import get_param, resolve_name, set_param
+    from jaxmpm.identify.parameters import with_values
     from jaxmpm.reconstruct import read_dataset, reconstruct, silhouette_iou, write_scene
     from jaxmpm.reconstruct.collider import chamfer_distance
     from jaxmpm.reconstruct.pipeline import identify_material, simulated_masks
@@ -128,10 +126,7 @@ def main() -> None:
                 "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
             }
             if args.at_truth:
-                at_truth = result.params
-                for n, value in {**truth, "velocity": truth_v}.items():
-                    path = resolve_name(scene.model, at_truth, n)
-                    at_truth = set_param(at_truth, path, jnp.asarray(value, jnp.asarray(get_param(at_truth, path)).dtype))
+                at_truth = with_values(scene.model, result.params, {**truth, "velocity": truth_v})
                 iou_t = silhouette_iou(simulated_masks(scene, at_truth, obs, result.substeps), obs.masks)
                 row.update(iou_truth_mean=float(iou_t.mean()), iou_truth_min=float(iou_t.min()))
             rows.append(row)

@@ -24,9 +24,7 @@ import numpy as np
 
 
 def main() -> None:
-    import jax.numpy as jnp
-
-    from jaxmpm.identify.parameters import get_param, resolve_name, set_param
+    from jaxmpm.identify.parameters import with_values
     from jaxmpm.reconstruct import read_dataset, reconstruct, silhouette_iou, write_scene
     from jaxmpm.reconstruct.pipeline import simulated_masks
     from jaxmpm.reconstruct.synthetic import COLLIDERS, MATERIAL_TRUTHS, drop_scene, render_drop_dataset
@@ -50,10 +48,7 @@ def main() -> None:
         scene = load_scene(write_scene(reconstruct(ds, args.material, surfels=False), Path(tmp) / "scene"))
 
         def iou(values: dict) -> np.ndarray:
-            p = scene.params
-            for name, value in {**values, "velocity": velocity}.items():
-                path = resolve_name(scene.model, p, name)
-                p = set_param(p, path, jnp.asarray(value, jnp.asarray(get_param(p, path)).dtype))
+            p = with_values(scene.model, scene.params, {**values, "velocity": velocity})
             return silhouette_iou(simulated_masks(scene, p, obs), obs.masks)
 
         def row(label: str, values: dict) -> None:

@@ -63,6 +63,21 @@ def test_scene_validation_reads_the_declared_range(model, key, bad, good):
         cls.validate({**values, key: bad})
 
 
+def test_named_values_are_set_in_the_leaves_dtype():
+    spec = {"dim": 2, "dx": 0.1, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 2, "frame_dt": 0.01, "substeps": 10,
+            "bodies": [{"shape": "box", "lo": [0.4, 0.4], "hi": [0.6, 0.6], "ppc": 4,
+                        "material": {"model": "newtonian", "mu": 1.0, "kappa": 1e3}}],
+            "colliders": [{"type": "plane", "name": "floor", "point": [0, 0.1], "normal": [0, 1]}]}
+    scene = jaxmpm.load_scene(spec)
+    p = P.with_values(scene.model, scene.params, {"mu": 200.0, "velocity": np.array([0.5, -1.0]), "floor.friction": 0.3})
+    for name, value in (("mu", 200.0), ("velocity", [0.5, -1.0]), ("floor.friction", 0.3)):
+        path = P.resolve_name(scene.model, p, name)
+        leaf, old = P.get_param(p, path), P.get_param(scene.params, path)
+        np.testing.assert_allclose(np.asarray(leaf), value, rtol=1e-6)
+        assert jnp.asarray(leaf).dtype == jnp.asarray(old).dtype
+    assert float(P.get_param(p, ("bodies", 0, "kappa"))) == pytest.approx(1e3)  # the others unchanged
+
+
 def test_parameter_names_are_checked_before_any_work():
     spec = {"dim": 2, "dx": 0.1, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 2, "frame_dt": 0.01, "substeps": 10,
             "bodies": [{"shape": "box", "lo": [0.4, 0.4], "hi": [0.6, 0.6], "ppc": 4,

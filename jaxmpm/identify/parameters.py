@@ -155,6 +155,15 @@ def set_param(params: Params, path: tuple, value) -> Params:
     return type(params)(out)
 
 
+def with_values(model: Model, params: Params, values: dict) -> Params:
+    """``params`` with each named parameter (:func:`resolve_name`) set to ``values[name]``,
+    cast to the leaf's dtype."""
+    for name, value in values.items():
+        path = resolve_name(model, params, name)
+        params = set_param(params, path, jnp.asarray(value, jnp.asarray(get_param(params, path)).dtype))
+    return params
+
+
 def apply_unconstrained(model: Model, params: Params, names, y: dict) -> Params:
     """``params`` with the named leaves set from optimisation variables (cast to the leaves' dtype)."""
     for name in names:
