@@ -25,30 +25,42 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
-def main() -> None:
-    from scenes import block_spec
-
-    from jaxmpm import extensions as X
-    from jaxmpm.discover import _rollout, discover
-    from jaxmpm.observe import Observation
-    from jaxmpm.scene import load_scene
-
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--hidden", choices=("gravity", "none"), default="gravity")
-    ap.add_argument("--delta", default="0,-2", help="the hidden gravity error, m/s^2 (x,y)")
+def scene_arguments(ap: argparse.ArgumentParser) -> None:
+    """The scene's command-line options (shared with discover_linearity.py)."""
     ap.add_argument("--E", type=float, default=3e3, help="Young's modulus, Pa")
     ap.add_argument("--velocity", default="1.5,0.5", help="the throw, m/s (x,y)")
     ap.add_argument("--contact", default="slip", choices=("slip", "sticky"), help="the floor's contact")
     ap.add_argument("--dx", type=float, default=0.009)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--substeps", type=int, default=100)
-    ap.add_argument("--json", default=None)
-    args = ap.parse_args()
+
+
+def block_scene(args):
+    """The thrown elastic block of the module docstring, from :func:`scene_arguments`' options."""
+    from scenes import block_spec
+
+    from jaxmpm.scene import load_scene
+
     velocity = [float(v) for v in args.velocity.split(",")]
     spec = block_spec(2, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
                       substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": args.contact},
                       lo=[0.2, 0.2], hi=[0.4, 0.35], velocity=velocity, ppc=4)
-    scene = load_scene(spec)
+    return load_scene(spec)
+
+
+def main() -> None:
+    from jaxmpm import extensions as X
+    from jaxmpm.discover import _rollout, discover
+    from jaxmpm.observe import Observation
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--hidden", choices=("gravity", "none"), default="gravity")
+    ap.add_argument("--delta", default="0,-2", help="the hidden gravity error, m/s^2 (x,y)")
+    scene_arguments(ap)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    velocity = [float(v) for v in args.velocity.split(",")]
+    scene = block_scene(args)
     m, p = scene.model, scene.params
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
     delta = [float(v) for v in args.delta.split(",")]

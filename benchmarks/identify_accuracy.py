@@ -40,7 +40,7 @@ def print_table(rows: list[dict]) -> None:
         truth = f" ({r['iou_truth_mean']:.3f} / {r['iou_truth_min']:.3f})" if "iou_truth_mean" in r else ""
         disks = "–" if r["chamfer_disks"] is None else f"{1e3 * r['chamfer_disks']:.1f}"
         print(f"| {r['material']} | {r['collider_shape']} | {r['degrade']} | {r['collider']} | "
-              f"{r.get('refine', 0)} / {r.get('rgb', 0.0):g} | {errs} | {r['velocity_error']:.3f} | "
+              f"{r.get('refine', 0)} / {r.get('rgb', 0.0):g} / {r.get('collider_rgb', 0.0):g} | {errs} | {r['velocity_error']:.3f} | "
               f"{1e3 * r['chamfer_mesh']:.1f} / {disks} | {r['body_iou_min']:.3f} | "
               f"{r['iou_mean']:.3f} / {r['iou_min']:.3f}{truth} | {r['iterations']} | "
               f"{r['seconds']:.0f} / {r['cpu_seconds']:.0f} |")
@@ -72,6 +72,7 @@ def main() -> None:
     ap.add_argument("--num-pixels", type=int, default=256)
     ap.add_argument("--refine", type=int, default=0, help="Adam steps of the first-frame refinement (0: none)")
     ap.add_argument("--rgb", type=float, default=0.0, help="weight of the masked-RGB term in the fit")
+    ap.add_argument("--collider-rgb", type=float, default=0.0, help="weight of the plates' colours in the surfel fit")
     ap.add_argument("--at-truth", action="store_true",
                     help="also simulate the reconstructed scene with the true parameters and velocity and report its "
                          "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
@@ -97,7 +98,7 @@ def main() -> None:
         for kind in args.colliders.split(","):
             t0, c0 = time.perf_counter(), time.process_time()
             rec = reconstruct(ds, args.material, tolerance=args.tolerance, collider="mesh" if kind == "mesh" else "disks",
-                              refine=args.refine)
+                              refine=args.refine, collider_rgb=args.collider_rgb)
             chamfer = {"mesh": chamfer_distance(rec.collider_mesh.sample(20000, seed=0), true_surface),
                        "disks": None if rec.surfels is None else chamfer_distance(rec.surfels.centers, true_surface)}
             if kind == "true":  # the true collider imported in place of the reconstruction
@@ -112,7 +113,8 @@ def main() -> None:
                                  obs.masks)
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
-                "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb, "renderer": args.renderer, "num_pixels": args.num_pixels,
+                "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb,
+                "collider_rgb": args.collider_rgb, "renderer": args.renderer, "num_pixels": args.num_pixels,
                 "views": args.views, "res": args.res, "min_elevation": args.min_elevation, "max_steps": args.max_steps,
                 "truth": truth, "values": {n: float(np.ravel(result.values[n])[0]) for n in names},
                 "errors": errors(names, result.values, truth),

@@ -28,6 +28,8 @@ def add_identify_parser(sub, func) -> None:
                         "(default 0: the visual hull's particles)")
     p.add_argument("--rgb", type=float, default=0.0, metavar="WEIGHT",
                    help="weight of the masked-RGB term in the fit, beside the silhouettes' 1 (default 0)")
+    p.add_argument("--collider-rgb", type=float, default=0.0, metavar="WEIGHT",
+                   help="weight of the background plates' colours in the collider surfel fit (default 0: masks only)")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.set_defaults(func=func)
 
@@ -59,7 +61,8 @@ def run_identify(args) -> int:
     try:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
-                       surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb, video=not args.no_video,
+                       surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
+                       collider_rgb=args.collider_rgb, video=not args.no_video,
                        stage=stage, progress=progress)
     finally:
         for bar in bars.values():

@@ -96,6 +96,7 @@ class Surfels:
         scales: ``(K, 2)`` standard deviations along the tangent axes, m.
         opacity: ``(K,)`` in [0, 1].
         iou: ``(V,)`` IoU of the (snapped) surfels' silhouettes with the collider masks.
+        colors: ``(K, 3)`` fitted RGB in [0, 1] when the plates' colours were fitted, else None.
     """
 
     centers: np.ndarray
@@ -104,6 +105,7 @@ class Surfels:
     scales: np.ndarray
     opacity: np.ndarray
     iou: np.ndarray
+    colors: np.ndarray | None = None
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the ``.npz`` a ``disks`` collider reads (keys of :func:`jaxmpm.colliders.load_disks`)."""
@@ -121,6 +123,9 @@ def fit_surfels(
     steps: int = 80,
     learning_rate: float = 0.05,
     min_opacity: float = 0.2,
+    images: np.ndarray | None = None,
+    rgb_weight: float = 1.0,
+    snap: bool = True,
     seed: int = 0,
     progress: Callable[[int, float], None] | None = None,
 ) -> Surfels:
@@ -129,13 +134,18 @@ def fit_surfels(
     ``count`` surfels are placed evenly on ``mesh`` with its outward normals and a scale of
     half the mean spacing; Adam then fits their positions, normals, two scales and opacities
     so that the renderer's soft silhouettes (:meth:`jaxmpm.render.SurfelRenderer.silhouette`)
-    match ``masks`` (mean squared error over all pixels of all views). Surfels whose opacity
-    ends below ``min_opacity`` are pruned, and the others are put back onto the hull's surface
-    with its normals (the nearest point): a silhouette does not see a surfel's depth or tilt
-    on a face seen face-on, and as fitted they drift (measured on the tests' box, lowest view
-    level with its top: top surfels 25 mm apart in height and tilted by up to 87°; with the
-    true parameters a Newtonian block's silhouettes on them matched the data at IoU 0.78,
-    on the snapped surfels 0.95, on the hull's mesh 0.96, on the true box 0.99).
+    match ``masks`` (mean squared error over all pixels of all views). With ``images`` (the
+    background plates) each surfel also gets a colour (starting from its mean over the views)
+    and the loss adds ``rgb_weight ×`` the mean of ``mask · |rgb − image|²``: the colours of a
+    textured collider fix the surfels' depth where silhouettes cannot (photo-consistency).
+    Surfels whose opacity ends below ``min_opacity`` are pruned, and with ``snap`` the others
+    are put back onto the hull's surface with its normals (the nearest point): a silhouette
+    does not see a surfel's depth or tilt on a face seen face-on, and as fitted to masks they
+    drift (measured on the tests' box, lowest view level with its top: top surfels 25 mm apart
+    in height and tilted by up to 87°; with the true parameters a Newtonian block's
+    silhouettes on them matched the data at IoU 0.78, on the snapped surfels 0.95, on the
+    hull's mesh 0.96, on the true box 0.99). Snapping also puts them back under the hull's
+    roof, which the colours carve (benchmarks/collider_rgb.py, docs/identify.md §3).
 
     Arguments:
         mesh: the collider's visual-hull mesh (``trimesh.Trimesh``, m).
@@ -145,6 +155,9 @@ def fit_surfels(
         steps, learning_rate: Adam iterations and step size (in units of the initial scale
             for positions, per unit for the normals and log-scales and opacity logits).
         min_opacity: pruning threshold.
+        images: ``(V, H, W, 3)`` uint8 background plates (the collider's colours), or None.
+        rgb_weight: weight of the colour term (with ``images``).
+        snap: put the fitted surfels onto the hull's surface with its normals.
         seed: sampling seed.
         progress: ``progress(step, loss)`` after each Adam step.
 
@@ -155,7 +168,7 @@ def fit_surfels(
     import jax.numpy as jnp
     import trimesh
 
-    from ..render import Camera, SurfelRenderer
+    from ..render import Camera, SurfelRenderer, mean_colors
     from .hull import silhouette_iou
 
     masks = np.asarray(masks) > 0
@@ -167,6 +180,9 @@ def fit_surfels(
     cams = [Camera(np.asarray(intrinsics[v], np.float32), np.asarray(cam_to_world[v], np.float32), W, H) for v in range(V)]
     renderer = SurfelRenderer(scale=scale0)
     target = jnp.asarray(masks, jnp.float32)
+    if images is not None and np.shape(images) != (V, H, W, 3):
+        raise ObservationError(f"fit_surfels: images have shape {np.shape(images)}; the masks need {(V, H, W, 3)}")
+    rgb = None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0)
     x0 = jnp.asarray(pts, jnp.float32)
 
     def unpack(theta):
@@ -174,12 +190,18 @@ def fit_surfels(
         n = theta["n"] / jnp.sqrt(jnp.sum(theta["n"] ** 2, axis=-1, keepdims=True) + 1e-12)
         return x, n, scale0 * jnp.exp(theta["log_s"]), jax.nn.sigmoid(theta["logit"])
 
-    def silhouettes(theta):
-        x, n, s, o = unpack(theta)
-        return jnp.stack([renderer.silhouette(x, c, normals=n, scales=s, opacities=o) for c in cams])
-
     def loss(theta):
-        return jnp.mean((silhouettes(theta) - target) ** 2)
+        x, n, s, o = unpack(theta)
+        total = 0.0
+        for v, cam in enumerate(cams):
+            if rgb is None:
+                alpha = renderer.silhouette(x, cam, normals=n, scales=s, opacities=o)
+            else:
+                out = renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), normals=n, scales=s, opacities=o)
+                alpha = out.alpha
+                total = total + rgb_weight * jnp.mean(target[v][..., None] * (out.rgb - rgb[v]) ** 2)
+            total = total + jnp.mean((alpha - target[v]) ** 2)
+        return total / V
 
     theta = {
         "dx": jnp.zeros_like(x0),
@@ -187,13 +209,18 @@ def fit_surfels(
         "log_s": jnp.zeros((len(pts), 2), jnp.float32),
         "logit": jnp.full((len(pts),), 2.0, jnp.float32),
     }
+    if rgb is not None:
+        c0 = np.clip(mean_colors(pts, np.asarray(images, float) / 255.0, masks, intrinsics, cam_to_world), 0.02, 0.98)
+        theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
     theta, _ = adam_fit(loss, theta, steps, learning_rate, progress)
     x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
-    # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt on a
-    # face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in height,
-    # tilted up to 87°, and a block rested 0.5 dx too high on them)
-    x, _, face = trimesh.proximity.closest_point(mesh, x)
-    n = np.asarray(mesh.face_normals[face], float)
+    colors = None if rgb is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)
+    if snap:
+        # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt
+        # on a face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in
+        # height, tilted up to 87°, and a block rested 0.5 dx too high on them)
+        x, _, face = trimesh.proximity.closest_point(mesh, x)
+        n = np.asarray(mesh.face_normals[face], float)
     snapped = [renderer.silhouette(jnp.asarray(x, jnp.float32), c, normals=jnp.asarray(n, jnp.float32),
                                    scales=jnp.asarray(s, jnp.float32), opacities=jnp.asarray(o, jnp.float32)) for c in cams]
     iou = silhouette_iou(np.asarray(jnp.stack(snapped)) > 0.5, masks)
@@ -203,4 +230,4 @@ def fit_surfels(
     axes_u, _ = renderer.surfel_axes(jnp.asarray(x[keep], jnp.float32), cams[0], normals=jnp.asarray(n[keep], jnp.float32),
                                      scales=jnp.ones((int(keep.sum()),), jnp.float32))
     return Surfels(centers=x[keep], normals=n[keep], tangents=np.asarray(axes_u, float), scales=s[keep],
-                   opacity=o[keep], iou=iou)
+                   opacity=o[keep], iou=iou, colors=None if colors is None else colors[keep])

@@ -33,6 +33,8 @@ class Dataset:
         observation: frames ``>= 0``: ``masks (V, T, H, W)``, ``images``, cameras, ``times`` (s).
         collider_masks: ``(V, H, W)`` bool masks of the colliders on the background plates,
             or None (no ``data/c_{view}.png``).
+        plates: ``(V, H, W, 3)`` uint8 background plates (frame −1: the colliders without
+            the material), or None when not every view has one.
         hint: the scene hint (a dict of scene keys; empty when none was given).
         frame_dt: seconds between frames (from the hint, else from the ``time`` values).
     """
@@ -42,6 +44,7 @@ class Dataset:
     collider_masks: np.ndarray | None
     hint: dict = field(default_factory=dict)
     frame_dt: float = 0.0
+    plates: np.ndarray | None = None
 
     @property
     def num_views(self) -> int:
@@ -142,6 +145,23 @@ def _collider_masks(folder: Path, V: int, H: int, W: int, downscale: int) -> np.
     return np.stack(out)
 
 
+def _plates(folder: Path, entries: list[dict], V: int, H: int, W: int, downscale: int) -> np.ndarray | None:
+    """Frame −1 of every view, or None when some view has none (the plates are optional)."""
+    from ..datasets import downscale_image, read_image
+
+    paths = {e["view"]: (folder / e["file_path"]).resolve() for e in entries if e["frame"] == -1}
+    if sorted(paths) != list(range(V)):
+        return None
+    out = []
+    for v in range(V):
+        rgb = read_image(paths[v])[..., :3]
+        if rgb.shape[:2] != (H, W):
+            raise ObservationError(f"view {v}: background plate {paths[v]} is {rgb.shape[1]}x{rgb.shape[0]} px, "
+                                   f"the images are {W}x{H}")
+        out.append(downscale_image(np.asarray(rgb, np.uint8), downscale))
+    return np.stack(out)
+
+
 def _frame_dt(times: np.ndarray, hint: dict, where: str) -> float:
     """Seconds between frames: the hint's ``frame_dt``, checked against the spacing of
     ``times`` (every spacing a whole number of frames, the smallest one frame), else the
@@ -194,7 +214,7 @@ def read_dataset(
     if hint is None and (folder / "scene_hint.toml").is_file():
         hint = folder / "scene_hint.toml"
     hint_dict = read_hint(hint)
-    _, H, W = _check_entries(folder)
+    entries, H, W = _check_entries(folder)
     obs = load_pacnerf(folder, downscale=downscale, mask_source=mask_source)
     V = obs.masks.shape[0]
     empty = [v for v in range(V) if not obs.masks[v, 0].any()]
@@ -203,4 +223,5 @@ def read_dataset(
     where = os.fspath(hint) if hint is not None and not isinstance(hint, dict) else "scene hint"
     dt = _frame_dt(np.asarray(obs.times, float), hint_dict, where)
     colliders = _collider_masks(folder, V, H, W, downscale)
-    return Dataset(folder=folder, observation=obs, collider_masks=colliders, hint=hint_dict, frame_dt=dt)
+    plates = _plates(folder, entries, V, H, W, downscale)
+    return Dataset(folder=folder, observation=obs, collider_masks=colliders, hint=hint_dict, frame_dt=dt, plates=plates)

@@ -231,13 +231,19 @@ def reconstruct_colliders(
     surfel_count: int = 600,
     surfel_steps: int = 80,
     voxel: float | None = None,
+    rgb: float = 0.0,
     progress: Callable[[int, float], None] | None = None,
 ):
     """The collider from ``data/c_{view}.png``: hull → mesh, and (``surfels``) fitted surfels.
 
     The hull is carved twice: over the domain at dx / 2 to find the collider, then at ``voxel``
     (default :data:`COLLIDER_VOXEL` × dx) over the collider's box. The mesh returned is the fine
-    hull's; the surfels are fitted from the coarse one's.
+    hull's; the surfels are fitted from the coarse one's, to the collider masks and snapped onto
+    that hull or, when ``rgb`` > 0, also to the plates' colours inside the masks with that
+    weight and left where the colours put them (:func:`fit_surfels`; measured on a painted box
+    seen from 12 views, the lowest 15° up: the surfels' roof over the top 7 mm against the
+    hull's 27 mm, an elastic block rests 0.78 dx above where it rests on the true box against
+    1.15 dx; from 6 views the colours hardly help: roof 20 mm, docs/identify.md §3).
 
     Returns ``(hull, mesh, surfels)`` (surfels None when not asked), or ``(None, None, None)``
     when the dataset has no collider masks.
@@ -271,7 +277,8 @@ def reconstruct_colliders(
     fitted = None
     if surfels:  # on the coarse hull's mesh: see COLLIDER_VOXEL
         fitted = fit_surfels(hull_mesh(coarse), dataset.collider_masks, obs.intrinsics, obs.cam_to_world,
-                             count=surfel_count, steps=surfel_steps, progress=progress)
+                             count=surfel_count, steps=surfel_steps, images=dataset.plates if rgb > 0 else None,
+                             rgb_weight=rgb, snap=rgb == 0, progress=progress)
     return hull, mesh, fitted
 
 
@@ -285,6 +292,7 @@ def reconstruct(
     surfel_count: int = 600,
     surfel_steps: int = 80,
     refine: int = 0,
+    collider_rgb: float = 0.0,
     progress: Callable[[int, float], None] | None = None,
 ) -> Reconstruction:
     """Body and colliders from the views, as a scene spec (nothing is written).
@@ -303,6 +311,8 @@ def reconstruct(
         surfel_count, surfel_steps: surfels placed and Adam steps.
         refine: Adam steps of the first-frame refinement (:func:`refine_body`, on the masks
             and the RGB of the first frame); 0 (default) keeps the hull's particles.
+        collider_rgb: weight of the background plates' colours in the surfel fit
+            (:func:`fit_surfels`; needs frame −1 in every view); 0 (default): masks only.
         progress: ``progress(step, loss)`` of the refinement and the surfel fit.
     """
     if collider not in ("disks", "mesh"):
@@ -311,6 +321,8 @@ def reconstruct(
         raise ObservationError("collider='disks' needs the surfels (surfels=True)")
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ObservationError(f"refine (Adam steps) must be an integer >= 0, got {refine!r}")
+    _check_rgb_weight(collider_rgb, dataset.plates,
+                      f"{dataset.folder}: a collider RGB weight needs a background plate data/r_{{view}}_-1.png in every view")
     spec = scene_skeleton(dataset, material)
     table, ppc, name = body_material(dataset, material)
     points, hull, iou = reconstruct_body(dataset, spec, ppc=ppc, tolerance=tolerance)
@@ -323,7 +335,7 @@ def reconstruct(
         points, iou = refined.points, refined.iou_after
     _check_floors(points, spec["colliders"], dataset.folder)
     _, mesh, surf = reconstruct_colliders(dataset, spec, points, surfels=surfels, surfel_count=surfel_count,
-                                          surfel_steps=surfel_steps, progress=progress)
+                                          surfel_steps=surfel_steps, rgb=collider_rgb, progress=progress)
     spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
     obs = dataset.observation
     fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"], gravity=spec["gravity"])
@@ -401,11 +413,12 @@ def write_scene(recon: Reconstruction, out: str | os.PathLike) -> Path:
 SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
 
 
-def _check_rgb_weight(rgb: float, observation) -> None:
-    if not (np.isfinite(rgb) and rgb >= 0):
-        raise ObservationError(f"the RGB weight must be >= 0, got {rgb}")
-    if rgb > 0 and observation.images is None:
-        raise ObservationError("an RGB weight needs the frames' colour images")
+def _check_rgb_weight(rgb: float, images, what: str = "an RGB weight needs the frames' colour images") -> None:
+    """A weight must be finite and >= 0; a positive one needs ``images`` (``what`` says which)."""
+    if isinstance(rgb, bool) or not isinstance(rgb, (int, float, np.number)) or not (np.isfinite(rgb) and rgb >= 0):
+        raise ObservationError(f"the RGB weight must be a number >= 0, got {rgb!r}")
+    if rgb > 0 and images is None:
+        raise ObservationError(what)
 
 
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
@@ -426,7 +439,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`)."""
     from ..fit import FitConfig, fit
 
-    _check_rgb_weight(rgb, observation)
+    _check_rgb_weight(rgb, observation.images)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
                        weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors)
     return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
@@ -599,6 +612,7 @@ def identify(
     surfel_steps: int = 80,
     refine: int = 0,
     rgb: float = 0.0,
+    collider_rgb: float = 0.0,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
@@ -613,7 +627,7 @@ def identify(
             ``overlay.mp4``.
         params: parameter names (default: the material's, plus ``velocity``).
         hint: ``scene_hint.toml`` path or dict (default ``folder/scene_hint.toml``).
-        tolerance, collider, surfel_steps, refine: see :func:`reconstruct`.
+        tolerance, collider, surfel_steps, refine, collider_rgb: see :func:`reconstruct`.
         max_steps, num_pixels, rgb: of the fit (:func:`identify_material`; with ``refine``
             and RGB the particles' fitted colours are the RGB term's).
         video: write the overlay video.
@@ -633,10 +647,10 @@ def identify(
     if material not in MATERIALS:
         raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
     names = list(params) if params else list(MATERIALS[material].required()) + ["velocity"]
-    _check_rgb_weight(rgb, dataset.observation)
+    _check_rgb_weight(rgb, dataset.observation.images)
     say("reconstruct")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
-                        refine=refine, progress=progress)
+                        refine=refine, collider_rgb=collider_rgb, progress=progress)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))

@@ -27,6 +27,8 @@ __all__ = [
     "drop_cameras",
     "collider_mesh",
     "collider_masks",
+    "collider_texture",
+    "collider_layer",
     "box_masks",
     "mesh_masks",
     "degrade",
@@ -145,6 +147,67 @@ def collider_masks(cameras, spec: dict) -> np.ndarray:
     return mesh_masks(cameras, np.asarray(mesh.vertices), np.asarray(mesh.faces))
 
 
+#: The texture's period on the collider, m (about 7 px at 96 px from the rig's 1 m).
+TEXTURE_PERIOD = 0.06
+
+
+def collider_texture(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """The synthetic colliders' paint: ``(N, 3)`` RGB in [0, 1] at surface ``points`` ``(N, 3)``
+    (m) with outward ``normals`` ``(N, 3)``: three sinusoids of period :data:`TEXTURE_PERIOD`
+    along different directions (one per channel, so every patch of a face differs from its
+    neighbours), shaded by a fixed light (Lambert, view-independent as photo-consistency
+    assumes)."""
+    k = 2.0 * np.pi / TEXTURE_PERIOD
+    p = np.asarray(points, float)
+    paint = np.stack([np.sin(k * (p[:, 0] + 1.3 * p[:, 1])), np.sin(k * (p[:, 2] - 0.7 * p[:, 0])),
+                      np.sin(0.8 * k * (p[:, 1] + p[:, 2]))], axis=-1)
+    light = np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3])
+    shade = 0.55 + 0.45 * np.clip(np.asarray(normals, float) @ light, 0.0, 1.0)
+    return (0.5 + 0.4 * paint) * shade[:, None]
+
+
+def collider_layer(cameras, spec: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The painted collider (:func:`collider_texture`) as each camera sees it: surface samples
+    about half a pixel apart rendered as surfels with the mesh's normals (depth-sorted).
+
+    Returns:
+        ``(color, alpha)``: ``(V, H, W, 3)`` colour premultiplied by ``alpha`` ``(V, H, W)``;
+        the plate over a background ``b`` is ``color + (1 − alpha) · b``.
+    """
+    import jax.numpy as jnp
+    import trimesh
+
+    from ..render import SurfelRenderer
+
+    mesh = collider_mesh(spec)
+    H, W = cameras.height, cameras.width
+    K = np.asarray(cameras.K, float)
+    pixel = 1.0 / float(K[0, 1, 1])  # a pixel's width at 1 m, m (the rig's distance)
+    count = int(min(mesh.area / (0.5 * pixel) ** 2, 60000))
+    points, face = trimesh.sample.sample_surface_even(mesh, count, seed=0)
+    normals = np.asarray(mesh.face_normals[face], float)
+    spacing = float(np.sqrt(mesh.area / len(points)))
+    renderer = SurfelRenderer(scale=0.6 * spacing, background=(0.0, 0.0, 0.0))
+    x, n = jnp.asarray(points, jnp.float32), jnp.asarray(normals, jnp.float32)
+    paint = jnp.asarray(collider_texture(points, normals), jnp.float32)
+    color, alpha = np.zeros((cameras.num_views, H, W, 3)), np.zeros((cameras.num_views, H, W))
+    for v in range(cameras.num_views):
+        out = renderer.render(x, cameras.view(v), paint, normals=n)
+        color[v], alpha[v] = np.asarray(out.rgb, float), np.asarray(out.alpha, float)
+    return color, alpha
+
+
+def backdrop(views: int, height: int, width: int, kind: str, rng) -> np.ndarray:
+    """``(V, H, W, 3)`` float 0–255: the scene behind everything: white, or (``kind="dark"``)
+    smooth random blotches, a backdrop that a mask by plate difference must tell apart."""
+    from scipy.ndimage import gaussian_filter
+
+    if kind != "dark":
+        return np.full((views, height, width, 3), 255.0)
+    texture = gaussian_filter(rng.uniform(60, 200, (views, height, width, 3)), sigma=(0, 2, 2, 0))
+    return np.clip((texture - texture.mean()) * 4 + 130, 0, 255)
+
+
 def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: int = 0):
     """What real footage does to a rendered dataset:
 
@@ -153,15 +216,15 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: 
     * ``drop``: view 0 missing (the lowest: in :func:`drop_cameras` elevations rise with the index);
     * ``drop_high``: the last (highest) view missing;
     * ``blur``: images and masks blurred (Gaussian, σ = 1 px; masks read back at alpha ≥ 128);
-    * ``dark``: no alpha — the frames are the material over a textured plate, the plate is
-      written at 70 % exposure, and the masks come from the difference with it.
+    * ``dark``: no alpha — the plate (the frames' backdrop: :func:`backdrop` blotches for
+      this kind) is written at 70 % exposure, and the masks come from the difference with it.
 
     Arguments:
         obs: the rendered :class:`jaxmpm.Observation` (masks ``(V, T, H, W)`` uint8 0/255,
-            images ``(V, T, H, W, 3)`` uint8); plate ``(V, H, W, 3)`` uint8; cmasks
-            ``(V, H, W)`` bool collider masks or None.
+            images ``(V, T, H, W, 3)`` uint8, the material over the plate); plate
+            ``(V, H, W, 3)`` uint8; cmasks ``(V, H, W)`` bool collider masks or None.
         kind: one of :data:`DEGRADATIONS`.
-        seed: the random seed of ``jitter`` and ``dark``.
+        seed: the random seed of ``jitter``.
 
     Returns:
         ``(obs, plate, cmasks, alpha)``: degraded copies and whether to write the masks as alpha.
@@ -192,19 +255,17 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: 
         masks = np.round(gaussian_filter(masks.astype(float), sigma=(0, 0, 1, 1))).astype(np.uint8)
         images = np.round(gaussian_filter(images.astype(float), sigma=(0, 0, 1, 1, 0))).astype(np.uint8)
     elif kind == "dark":
-        texture = gaussian_filter(rng.uniform(60, 200, (*masks.shape[:1], *masks.shape[2:], 3)), sigma=(0, 2, 2, 0))
-        texture = np.clip((texture - texture.mean()) * 4 + 130, 0, 255)  # smooth blotches
-        a = masks[..., None] / 255.0
-        images = np.round(a * images + (1 - a) * texture[:, None]).astype(np.uint8)
-        plate, alpha = np.round(0.7 * texture).astype(np.uint8), False
+        plate, alpha = np.round(0.7 * plate.astype(float)).astype(np.uint8), False
     return dataclasses.replace(obs, masks=masks, images=images), plate, cmasks, alpha
 
 
 def render_drop_dataset(folder: str | os.PathLike, views: int = 4, res: int = 48, frames: int = 6,
                         hint: bool = True, min_elevation_deg: float = 15.0, material: str = "newtonian",
                         collider: str = "box", degradation: str = "clean") -> tuple[Path, np.ndarray]:
-    """Simulate :func:`drop_scene`, render it with surfels from :func:`drop_cameras`,
-    :func:`degrade` it and write a PAC-NeRF folder (white plates, ``c_`` collider masks) with,
+    """Simulate :func:`drop_scene`, render it with surfels from :func:`drop_cameras` in front
+    of a plate (white, or :func:`backdrop` blotches for ``dark``, with the painted collider
+    of :func:`collider_layer`), :func:`degrade` it and write a PAC-NeRF folder (frames,
+    plates, ``c_`` collider masks) with,
     when ``hint``, a ``scene_hint.toml`` holding what a person knows: dx, the frame rate,
     substeps, the domain and the floor (not the collider, not the material).
 
@@ -225,11 +286,17 @@ def render_drop_dataset(folder: str | os.PathLike, views: int = 4, res: int = 48
     traj = run_frames(scene.model, scene.params)
     cams = drop_cameras(views, res, min_elevation_deg)
     r = render_views(np.asarray(traj.x), cams, "surfels", spacing=0.025)
-    obs = Observation(times=np.asarray(traj.times), masks=r["masks"], images=r["images"], intrinsics=r["intrinsics"],
+    plate = backdrop(views, res, res, degradation, np.random.default_rng(0))
+    cmasks = None
+    if collider != "none":
+        cmasks = collider_masks(cams, COLLIDERS[collider])
+        color, a = collider_layer(cams, COLLIDERS[collider])
+        plate = 255.0 * color + (1.0 - a[..., None]) * plate
+    m = r["masks"][..., None] / 255.0  # the material in front of the plate
+    images = np.round(m * r["images"] + (1.0 - m) * plate[:, None]).astype(np.uint8)
+    obs = Observation(times=np.asarray(traj.times), masks=r["masks"], images=images, intrinsics=r["intrinsics"],
                       cam_to_world=r["cam_to_world"])
-    plate = np.full((views, res, res, 3), 255, np.uint8)
-    cmasks = collider_masks(cams, COLLIDERS[collider]) if collider != "none" else None
-    obs, plate, cmasks, alpha = degrade(obs, plate, cmasks, degradation)
+    obs, plate, cmasks, alpha = degrade(obs, np.round(plate).astype(np.uint8), cmasks, degradation)
     folder = save_pacnerf(folder, obs, background=plate, collider_masks=cmasks, alpha=alpha)
     if hint:
         known = {k: spec[k] for k in ("dx", "frame_dt", "substeps", "domain")}
