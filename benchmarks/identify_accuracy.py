@@ -32,7 +32,7 @@ import numpy as np
 def print_table(rows: list[dict]) -> None:
     """The rows as one markdown table (errors: |Δlog10| for moduli and viscosities, degrees for
     the friction angle, raw for ν)."""
-    print("\n| material | collider | degradation | used collider | refine / rgb | errors | velocity error (m/s) "
+    print("\n| material | collider | degradation | used collider | refine / rgb / collider rgb | errors | velocity error (m/s) "
           "| Chamfer mesh / disks (mm) | IoU frame 0 min | IoU mean / min (at the truth) | iterations | wall / CPU s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:

@@ -463,14 +463,30 @@ class _Fit:
 
 
 #: Tolerances of the Levenberg–Marquardt's Cauchy test (those of :class:`jaxmpm.FitConfig`), and
-#: the relative decrease of the training loss below which an accepted step also stops it.
+#: the smallest relative decrease of the training loss an accepted step must make not to stop it.
 _RTOL, _ATOL, _FTOL = 1e-5, 1e-8, 1e-5
+#: The change of a likelihood-ratio or score statistic (``n ln(RSS_0 / RSS_1)``, χ² critical
+#: values 2.7–3.8) that a fit need not resolve: an accepted step lowering the training loss by
+#: a fraction δ changes them by about ``n δ``, so a fit stops once ``n δ`` falls below this
+#: (unless :data:`_FTOL` is the larger). Measured (docs/benchmarks.md, target 4): base fits of
+#: the discover_time cases spent 19 of 22 iterations lowering the loss by < 1e-4 (relative)
+#: each, and iterations 5–21 (150 of 165 s) lowering it by 2e-4 in all (``n δ`` 8e-3 with
+#: 42 training frames).
+STATISTIC_RESOLUTION = 0.01
+
+
+def _train_groups(problem: _Problem, train_entries) -> int:
+    """How many groups (frames) have training entries: the statistics' sample size ``n``."""
+    g = problem.groups.entry_group
+    return max(int(np.unique(g[(g >= 0) & np.asarray(train_entries, bool)]).size), 1)
 
 
 def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, progress=None) -> _Fit:
     """The identification core's Levenberg–Marquardt, within the parameters' bounds, on the
     training residuals (held-out entries weigh 0; sequences held out entirely are not
-    simulated); all residuals are then evaluated once at the estimate.
+    simulated); all residuals are then evaluated once at the estimate. An accepted step that
+    lowers the loss by less than ``max(_FTOL, STATISTIC_RESOLUTION / n)`` (relative; ``n``
+    training groups) ends it.
 
     Raises:
         JaxmpmError: the loss is not finite at ``theta0`` (an unstable simulation).
@@ -490,7 +506,8 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
         out = levenberg_marquardt(
             lambda sub: w * problem.residuals(full(sub), training_only=True), theta[cols],
             jacobian=lambda sub: w[:, None] * problem.jacobian(full(sub), cols),
-            lower=problem.lower[cols], upper=problem.upper[cols], scaled=True, ftol=_FTOL,
+            lower=problem.lower[cols], upper=problem.upper[cols], scaled=True,
+            ftol=max(_FTOL, STATISTIC_RESOLUTION / _train_groups(problem, train_entries)),
             max_steps=max_iter, rtol=_RTOL, atol=_ATOL, progress=progress)
         if not out.unhealthy_start:
             theta, iterations, history = full(out.y), out.iterations, out.losses
