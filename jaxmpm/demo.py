@@ -110,7 +110,7 @@ def run_video_demo(out: Path, quick: bool = False, max_steps: int | None = None,
     """The demo from video: a Newtonian block (mu = 200, kappa = 1e5) thrown down onto the
     edge of a box or onto the bunny (``collider``, one of :data:`VIDEO_COLLIDERS`) is
     simulated and rendered from :data:`VIDEO_VIEWS` cameras as a PAC-NeRF folder
-    (``out/dataset``: silhouettes, images, white plates, collider masks, and a hint with what a
+    (``out/dataset``: silhouettes, images, plates (the painted collider on white), collider masks, and a hint with what a
     person knows: the floor, the frame rate, the domain and dx;
     :func:`jaxmpm.reconstruct.synthetic.render_drop_dataset`); then
     :func:`jaxmpm.identify_dataset` runs on it (``out/identify``: scene, fit.json, report.md,
