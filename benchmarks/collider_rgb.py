@@ -63,7 +63,11 @@ def main() -> None:
     spec["bodies"][0]["material"] = {"model": "elastic", "density": 1000.0, "E": 1e5, "nu": 0.3}
     y_true, _ = rest_height(spec, true, true_mesh)
     dx = spec["dx"]
-    inner = lambda c: np.all((c[:, [0, 2]] > lo[[0, 2]] + 0.04) & (c[:, [0, 2]] < hi[[0, 2]] - 0.04), axis=1) & (c[:, 1] > hi[1] - 0.05)
+
+    def inner(c):  # points over the top's inner part (4 cm from its edges), near or above it
+        xz = c[:, [0, 2]]
+        return np.all((xz > lo[[0, 2]] + 0.04) & (xz < hi[[0, 2]] - 0.04), axis=1) & (c[:, 1] > hi[1] - 0.05)
+
     print(f"{args.collider}, lowest view {args.elevation:g} deg, {args.res} px; block on the true collider rests at "
           f"{y_true:.4f} m")
     for views in args.views:

@@ -83,3 +83,29 @@ def test_the_unbounded_path_takes_the_steps_it_took_before_bounds():
                                 upper=np.full(4, np.inf))
     for n in "akbw":
         assert abs(float(boxed.y[n]) - float(out.y[n])) < 1e-8
+
+
+def test_the_loss_decrease_stop_shortens_a_slow_descent():
+    """A large-residual fit (an exponential through scattered data) converges linearly: the
+    relative decreases fall by decades over the last iterations. With ``ftol`` the fit follows
+    the same path until a step lowers the loss by less than ``ftol`` and then ends after the
+    Gauss–Newton check (whose escapes may still take a few steps): fewer iterations, the same
+    loss to the ``ftol`` (discover sets ``ftol`` from its statistics' sample size)."""
+    t = np.array([0.5, 1.0, 1.5, 2.0, 2.5])
+    data = np.array([3.0, 0.2, 4.0, 0.5, 6.0])
+
+    def residuals(y):
+        return y[1] * np.exp(y[0] * t) - data
+
+    def jacobian(y):
+        return np.stack([t * y[1] * np.exp(y[0] * t), np.exp(y[0] * t)], axis=1)
+
+    fit = lambda ftol: levenberg_marquardt(residuals, np.array([1.0, 0.1]), jacobian=jacobian, scaled=True,  # noqa: E731
+                                           ftol=ftol, max_steps=200, rtol=1e-10, atol=1e-14)
+    full, early = fit(1e-12), fit(1e-3)
+    decrease = 1.0 - np.asarray(early.losses[1:]) / np.asarray(early.losses[:-1])
+    first_small = int(np.argmax(decrease < 1e-3)) + 1  # the loss after the first small step
+    assert decrease[first_small - 1] < 1e-3
+    np.testing.assert_array_equal(early.losses[: first_small + 1], full.losses[: first_small + 1])
+    assert early.iterations < full.iterations and len(early.losses) < len(full.losses)
+    assert early.losses[-1] <= full.losses[-1] * (1.0 + 1e-3)

@@ -95,7 +95,8 @@ class Surfels:
         tangents: ``(K, 3)`` unit first tangent axes.
         scales: ``(K, 2)`` standard deviations along the tangent axes, m.
         opacity: ``(K,)`` in [0, 1].
-        iou: ``(V,)`` IoU of the (snapped) surfels' silhouettes with the collider masks.
+        iou: ``(V,)`` IoU of the returned surfels' silhouettes (snapped or as fitted) with the
+            collider masks.
         colors: ``(K, 3)`` fitted RGB in [0, 1] when the plates' colours were fitted, else None.
     """
 
@@ -221,9 +222,9 @@ def fit_surfels(
         # height, tilted up to 87°, and a block rested 0.5 dx too high on them)
         x, _, face = trimesh.proximity.closest_point(mesh, x)
         n = np.asarray(mesh.face_normals[face], float)
-    snapped = [renderer.silhouette(jnp.asarray(x, jnp.float32), c, normals=jnp.asarray(n, jnp.float32),
-                                   scales=jnp.asarray(s, jnp.float32), opacities=jnp.asarray(o, jnp.float32)) for c in cams]
-    iou = silhouette_iou(np.asarray(jnp.stack(snapped)) > 0.5, masks)
+    final = [renderer.silhouette(jnp.asarray(x, jnp.float32), c, normals=jnp.asarray(n, jnp.float32),
+                                 scales=jnp.asarray(s, jnp.float32), opacities=jnp.asarray(o, jnp.float32)) for c in cams]
+    iou = silhouette_iou(np.asarray(jnp.stack(final)) > 0.5, masks)
     keep = o >= min_opacity
     if not keep.any():
         raise ObservationError("every fitted collider surfel became transparent: the collider masks hold no collider")

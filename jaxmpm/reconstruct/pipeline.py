@@ -564,8 +564,10 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
     if recon.collider_mesh is not None:
         lines.append(f"- collider mesh: {len(recon.collider_mesh.faces)} faces, volume {recon.collider_mesh.volume:.4g} m³")
     if recon.surfels is not None:
-        lines.append(f"- collider surfels: {len(recon.surfels.centers)} kept; IoU per view with the collider masks: "
-                     + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
+        how = ("fitted to the collider masks and the plates' colours, as fitted" if recon.surfels.colors is not None
+               else "fitted to the collider masks, put back on the hull")
+        lines.append(f"- collider surfels ({how}): {len(recon.surfels.centers)} kept; IoU per view with the collider "
+                     "masks: " + ", ".join(f"{x:.3f}" for x in recon.surfels.iou))
     lines.append(f"- the scene uses the reconstructed collider as: {recon.collider or 'none (no data/c_*.png)'}")
     if recon.collider_roof is not None:
         h, theta = recon.collider_roof
