@@ -33,6 +33,7 @@ def scene_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--dx", type=float, default=0.009)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--substeps", type=int, default=100)
+    ap.add_argument("--height", type=float, default=0.1, help="the block's bottom above the floor, m")
 
 
 def block_scene(args):
@@ -44,7 +45,7 @@ def block_scene(args):
     velocity = [float(v) for v in args.velocity.split(",")]
     spec = block_spec(2, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
                       substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": args.contact},
-                      lo=[0.2, 0.2], hi=[0.4, 0.35], velocity=velocity, ppc=4)
+                      lo=[0.2, 0.1 + args.height], hi=[0.4, 0.25 + args.height], velocity=velocity, ppc=4)
     return load_scene(spec)
 
 
@@ -54,8 +55,9 @@ def main() -> None:
     from jaxmpm.observe import Observation
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--hidden", choices=("gravity", "none"), default="gravity")
+    ap.add_argument("--hidden", choices=("gravity", "friction", "none"), default="gravity")
     ap.add_argument("--delta", default="0,-2", help="the hidden gravity error, m/s^2 (x,y)")
+    ap.add_argument("--friction", type=float, default=0.3, help="the floor's hidden Coulomb coefficient")
     scene_arguments(ap)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
@@ -64,7 +66,8 @@ def main() -> None:
     m, p = scene.model, scene.params
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
     delta = [float(v) for v in args.delta.split(",")]
-    hidden = {"gravity": {"delta": delta}} if args.hidden == "gravity" else None
+    hidden = {"gravity": {"gravity": {"delta": delta}}, "friction": {"collider_friction": {"floor": args.friction}},
+              "none": None}[args.hidden]
     truth = X.enable(m, p, ids, hidden)
     x = np.asarray(_rollout(m, truth, args.frames)[0].x, float)
     x = x + 1e-3 * np.random.default_rng(0).standard_normal(x.shape)
@@ -73,7 +76,8 @@ def main() -> None:
           f"= {args.frames * args.substeps} steps; hidden: {args.hidden}", flush=True)
     t0, c0 = time.perf_counter(), time.process_time()
     result = discover(m, p, obs, progress=lambda line: print(f"  [{time.perf_counter() - t0:7.1f} s] {line}", flush=True))
-    row = {"hidden": args.hidden, "delta": delta if hidden else None, "E": args.E, "velocity": velocity,
+    row = {"hidden": args.hidden, "delta": delta if args.hidden == "gravity" else None,
+           "friction": args.friction if args.hidden == "friction" else None, "height": args.height, "E": args.E, "velocity": velocity,
            "contact": args.contact, "frames": args.frames, "substeps": args.substeps, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
            "discrepancy": bool(result.discrepancy), "cause": result.cause, "causes": list(result.causes),
            "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,

@@ -73,6 +73,7 @@ def main() -> None:
     ap.add_argument("--refine", type=int, default=0, help="Adam steps of the first-frame refinement (0: none)")
     ap.add_argument("--rgb", type=float, default=0.0, help="weight of the masked-RGB term in the fit")
     ap.add_argument("--collider-rgb", type=float, default=0.0, help="weight of the plates' colours in the surfel fit")
+    ap.add_argument("--refine-velocity", action="store_true", help="refit the velocity with the material")
     ap.add_argument("--at-truth", action="store_true",
                     help="also simulate the reconstructed scene with the true parameters and velocity and report its "
                          "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
@@ -107,14 +108,15 @@ def main() -> None:
                 rec.spec["colliders"][-1] = {**COLLIDERS[args.collider], "name": "collider", "contact": "sticky"}
             scene = load_scene(write_scene(rec, Path(tmp) / f"scene_{kind}"))
             result = identify_material(scene, obs, names + ["velocity"], max_steps=args.max_steps,
-                                       renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb)
+                                       renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb,
+                                       refine_velocity=args.refine_velocity)
             evaluation_notes: list[str] = []
             iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps, notes=evaluation_notes),
                                  obs.masks)
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
                 "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb,
-                "collider_rgb": args.collider_rgb, "renderer": args.renderer, "num_pixels": args.num_pixels,
+                "collider_rgb": args.collider_rgb, "refine_velocity": args.refine_velocity, "renderer": args.renderer, "num_pixels": args.num_pixels,
                 "views": args.views, "res": args.res, "min_elevation": args.min_elevation, "max_steps": args.max_steps,
                 "truth": truth, "values": {n: float(np.ravel(result.values[n])[0]) for n in names},
                 "errors": errors(names, result.values, truth),

@@ -31,6 +31,25 @@ def loss_curve(path: str | Path, losses, title: str = "fit") -> Path:
     return Path(path)
 
 
+def iou_curves(path: str | Path, iou, times, title: str = "observed vs simulated silhouettes") -> Path:
+    """Silhouette IoU ``(V, T)`` against time ``(T,)`` (s), one line per view, saved as PNG."""
+    iou = np.asarray(iou, float)
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+    for v, row in enumerate(iou):
+        ax.plot(np.asarray(times, float), row, "o-", ms=3, label=f"view {v}")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("IoU")
+    ax.set_ylim(min(0.5, float(np.nanmin(iou)) - 0.05) if iou.size else 0.5, 1.0)
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
 def particle_frames(positions: np.ndarray, model, overlay: np.ndarray | None = None, size: int = 360) -> np.ndarray:
     """Render particle positions ``(T, N, D)`` to RGB frames ``(T, H, W, 3)`` uint8.
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import imageio.v2 as imageio
 import numpy as np
 import pytest
 from test_scene_io import BAD_OBSERVATIONS, BAD_SCENE_FILE_IDS, BAD_SCENES, bad_scene, bad_scene_files, write_bad_observation
@@ -316,10 +317,13 @@ def test_demo_video_goes_from_rendered_views_to_parameters(tmp_path, capsys):
     dataset = tmp_path / "dataset"
     assert (dataset / "all_data.json").is_file() and (dataset / "scene_hint.toml").is_file()
     assert len(list((dataset / "data").glob("c_*.png"))) == 4
-    assert set(out["files"]) >= {"fit", "report", "scene", "overlay", "collider_disks"}
+    assert set(out["files"]) >= {"fit", "report", "scene", "overlay", "overlay_frames", "iou", "collider_disks"}
+    sheet = imageio.imread(out["files"]["overlay_frames"])  # a row per frame (6 of 6), a column per view (4 of 4)
+    assert sheet.shape == (6 * 64 + 5 * 2, 4 * 64 + 3 * 2, 3) and sheet[..., 0].max() == 255
     assert out["chamfer_m"]["mesh"] < 0.05 and out["chamfer_m"]["surfels"] < 0.05  # dx = 0.05 m
     report = (tmp_path / "identify" / "report.md").read_text()
     assert "free fall: 2 frames" in report
+    assert "(iou.png)" in report and "(overlay_frames.png)" in report
     scene = (tmp_path / "identify" / "scene.toml").read_text()
     assert 'path = "collider.obj"' in scene  # the hull mesh (the default; the surfels are written too)
     velocity = json.loads(scene.split("velocity = ")[1].split("\n")[0])

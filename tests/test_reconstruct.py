@@ -473,13 +473,38 @@ def test_a_failing_fit_leaves_no_output(dataset, tmp_path, monkeypatch):
     import jaxmpm.reconstruct.pipeline as pipeline
     from jaxmpm.errors import SimulationError
 
+    asked = {}
+
     def boom(*args, **kwargs):
+        asked.update(kwargs)
         raise SimulationError("unstable")
 
     monkeypatch.setattr(pipeline, "identify_material", boom)
     with pytest.raises(SimulationError):
-        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2)
+        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2, refine_velocity=True)
     assert list(tmp_path.iterdir()) == []  # neither the output nor the staging folder
+    assert asked["refine_velocity"] is True
+
+
+@pytest.mark.parametrize("refine_velocity", [False, True])
+def test_identify_material_refits_the_velocity_with_the_material_only_when_asked(dataset, monkeypatch,
+                                                                                 refine_velocity):
+    import importlib
+    import types
+
+    from jaxmpm.reconstruct.pipeline import SCAN_DECADES, identify_material
+
+    seen = {}
+
+    def fake_fit(model, params, observation, names, config, **kwargs):
+        seen.update(names=names, config=config)
+        return "result"
+
+    monkeypatch.setattr(importlib.import_module("jaxmpm.fit"), "fit", fake_fit)  # the module, not jaxmpm.fit()
+    obs = read_dataset(dataset[0]).observation
+    scene = types.SimpleNamespace(model=None, params=None)
+    assert identify_material(scene, obs, ["mu", "velocity"], refine_velocity=refine_velocity) == "result"
+    assert seen["config"].refine_velocity is refine_velocity and seen["config"].scan == SCAN_DECADES
 
 
 # --------------------------------------------------------------------------- free fall

@@ -30,6 +30,9 @@ def add_identify_parser(sub, func) -> None:
                    help="weight of the masked-RGB term in the fit, beside the silhouettes' 1 (default 0)")
     p.add_argument("--collider-rgb", type=float, default=0.0, metavar="WEIGHT",
                    help="weight of the background plates' colours in the collider surfel fit (default 0: masks only)")
+    p.add_argument("--refine-velocity", action="store_true",
+                   help="refit the initial velocity with the material after the pre-contact stage (default: "
+                        "keep the pre-contact estimate)")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.set_defaults(func=func)
 
@@ -62,7 +65,7 @@ def run_identify(args) -> int:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
                        surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
-                       collider_rgb=args.collider_rgb, video=not args.no_video,
+                       collider_rgb=args.collider_rgb, refine_velocity=args.refine_velocity, video=not args.no_video,
                        stage=stage, progress=progress)
     finally:
         for bar in bars.values():

@@ -28,6 +28,7 @@ from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
+from ..render import tile_views
 from .refine import BodyRefinement, refine_body
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
@@ -422,7 +423,8 @@ def _check_rgb_weight(rgb: float, images, what: str = "an RGB weight needs the f
 
 
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
-                      renderer: str = RENDERER, rgb: float = 0.0, colors="auto", progress=None, log=None):
+                      renderer: str = RENDERER, rgb: float = 0.0, colors="auto", refine_velocity: bool = False,
+                      progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
     pre-contact frames, then the material, each log10 parameter first scanned over
@@ -436,12 +438,18 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
 
     ``rgb``: the weight of the masked-RGB term beside the silhouettes' (weight 1; default 0,
     silhouettes only, as GIC); ``colors``: the particles' colours for it (``"auto"``: each
-    particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`)."""
+    particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`).
+
+    ``refine_velocity``: refit the velocity with the material in the stages after the
+    pre-contact one (:attr:`jaxmpm.FitConfig.refine_velocity`); by default the velocity
+    stays where the pre-contact frames put it, and an error there is absorbed by the
+    material (measured on blurred views: docs/identify.md §4)."""
     from ..fit import FitConfig, fit
 
     _check_rgb_weight(rgb, observation.images)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
-                       weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors)
+                       weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors,
+                       refine_velocity=bool(refine_velocity))
     return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
 
 
@@ -483,13 +491,19 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
 def overlay_frames(observed: np.ndarray, simulated: np.ndarray, views: int = 4) -> np.ndarray:
     """Video frames ``(T, H', W', 3)`` uint8: observed silhouettes in red, simulated in green
     (overlap yellow), the first ``views`` views side by side."""
-    from ..render import tile_views
-
     V = min(views, observed.shape[0])
     rgb = np.zeros(observed[:V].shape + (3,), np.uint8)
     rgb[..., 0] = observed[:V]
     rgb[..., 1] = simulated[:V]
-    return tile_views(rgb, cols=V)
+    return tile_views(rgb, cols=V, pad=2)
+
+
+def overlay_sheet(observed: np.ndarray, simulated: np.ndarray, views: int = 4, frames: int = 6) -> np.ndarray:
+    """One picture ``(H', W', 3)`` uint8 of :func:`overlay_frames`: up to ``frames`` frames,
+    evenly spaced from the first to the last, one per row (2 px white lines between rows)."""
+    video = overlay_frames(observed, simulated, views)
+    rows = video[np.unique(np.linspace(0, len(video) - 1, min(frames, len(video))).round().astype(int))]
+    return tile_views(rows[:, None], cols=1, pad=2)[0]
 
 
 def body_collider_gap(recon: Reconstruction) -> float | None:
@@ -548,6 +562,9 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
         lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |")
     lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
               "## Silhouette IoU over time (observed vs simulated)", "",
+              "![IoU per view over time](iou.png)", "",
+              "![observed (red) and simulated (green) silhouettes, overlap yellow; a row per frame, a column per view]"
+              "(overlay_frames.png)", "",
               "| t (s) | " + " | ".join(f"view {v}" for v in range(iou.shape[0])) + " |",
               "|---" * (iou.shape[0] + 1) + "|"]
     for t in range(iou.shape[1]):
@@ -615,6 +632,7 @@ def identify(
     refine: int = 0,
     rgb: float = 0.0,
     collider_rgb: float = 0.0,
+    refine_velocity: bool = False,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
@@ -625,12 +643,13 @@ def identify(
         folder: the dataset (see docs/file_formats.md).
         material: material model name.
         out: output folder: ``scene.toml`` (+ ``body.npy``, ``collider.obj``,
-            ``collider_disks.npz``), ``fit.json`` (as ``jaxmpm fit``), ``report.md``,
-            ``overlay.mp4``.
+            ``collider_disks.npz``), ``fit.json`` (as ``jaxmpm fit``), ``report.md`` with its
+            pictures ``iou.png`` (IoU per view over time) and ``overlay_frames.png`` (observed
+            and simulated silhouettes, a row per frame), ``overlay.mp4``.
         params: parameter names (default: the material's, plus ``velocity``).
         hint: ``scene_hint.toml`` path or dict (default ``folder/scene_hint.toml``).
         tolerance, collider, surfel_steps, refine, collider_rgb: see :func:`reconstruct`.
-        max_steps, num_pixels, rgb: of the fit (:func:`identify_material`; with ``refine``
+        max_steps, num_pixels, rgb, refine_velocity: of the fit (:func:`identify_material`; with ``refine``
             and RGB the particles' fitted colours are the RGB term's).
         video: write the overlay video.
         stage: called with the name of each stage as it starts.
@@ -639,7 +658,10 @@ def identify(
     Returns:
         An :class:`IdentifyResult`.
     """
+    import imageio.v2 as imageio
+
     from ..constitutive import MATERIALS
+    from ..plots import iou_curves
     from ..render import write_video
     from ..scene import load_scene
 
@@ -662,15 +684,17 @@ def identify(
         say("fit")
         colors = "auto" if recon.refinement is None or recon.refinement.colors is None else recon.refinement.colors
         result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
-                                   rgb=rgb, colors=colors, progress=progress)
+                                   rgb=rgb, colors=colors, refine_velocity=refine_velocity, progress=progress)
         (staging / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
         say("evaluate")
         evaluation_notes: list[str] = []
         sim = simulated_masks(scene, result.params, dataset.observation, result.substeps, notes=evaluation_notes)
         iou = silhouette_iou(sim, dataset.observation.masks)
         warnings = identify_warnings(result, recon, float(scene.model.grid.dx)) + evaluation_notes
-        write_report(staging / "report.md", result, recon, iou, np.asarray(dataset.observation.times), material,
-                     warnings)
+        times = np.asarray(dataset.observation.times)
+        write_report(staging / "report.md", result, recon, iou, times, material, warnings)
+        imageio.imwrite(staging / "overlay_frames.png", overlay_sheet(dataset.observation.masks, sim))
+        iou_curves(staging / "iou.png", iou, times)
         if video:
             write_video(staging / "overlay.mp4", overlay_frames(dataset.observation.masks, sim),
                         fps=max(1, round(1.0 / dataset.frame_dt)))
