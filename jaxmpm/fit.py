@@ -226,11 +226,9 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
         scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
         bad = np.flatnonzero(~(disp <= tol * np.maximum(scale, 1e-9)))
         return None if len(bad) == 0 else float(times[bad[0]])
-    from .step import simulate
+    from .step import forward
 
-    frames = frames_needed(model, times)
-    traj = jax.jit(lambda p: simulate(model, p, frames=frames))(params)
-    x = np.asarray(traj.x, float)
+    x = np.asarray(forward(model, params, frames_needed(model, times)).x, float)
     disp = _velocity_dispersion(x)
     bad = np.flatnonzero(~(disp <= tol))
     if len(bad) == 0:

@@ -60,7 +60,7 @@ from ..errors import JaxmpmError, ObservationError
 from ..model import Model, Params
 from ..observe import Observation
 from ..state import State, make_state
-from ..step import Trajectory, health_message, simulate, unhealthy
+from ..step import Trajectory, forward, health_message, simulate, unhealthy
 
 __all__ = [
     "TERMS",
@@ -809,8 +809,7 @@ class Objective:
     def health(self, params: Params) -> str | None:
         """None when the rollout at ``params`` is healthy, else the one line of
         :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
-        traj = jax.jit(lambda p: self.simulate(p))(params)
-        return health_message(self.model, traj, self.cfl_limit)
+        return health_message(self.model, forward(self.model, params, self.frames), self.cfl_limit)
 
 
 def _default_weights(obs: Observation) -> dict[str, float]:
