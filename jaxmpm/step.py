@@ -28,6 +28,7 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .model import Collision, Model, Params
+from .precision import full_precision
 from .state import (
     Grid,
     State,
@@ -349,6 +350,7 @@ def penetration_correction(model: Model, contact: cpic.Contact | None, v: Float[
     return cpic.penetration_correction(contact, v, model.dt, model.grid.dx, model.penetration)
 
 
+@full_precision
 def step(model: Model, params: Params, state: State) -> State:
     """Advance ``state`` by one MPM step of ``model.dt`` seconds.
 
@@ -378,6 +380,7 @@ def _row_norm2(v):
     return jnp.sum(v * v, axis=-1)
 
 
+@full_precision
 def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, Float[Array, ""]]:
     """:func:`step`, and the largest squared speed its projections produced
     (:func:`projected_speed2`; the CFL number of the substep is ``sqrt(speed2) dt / dx``)."""
@@ -574,6 +577,7 @@ def _left_domain(grid: Grid, x: Float[Array, "N D"]) -> Int[Array, ""]:
     return jnp.sum(outside.astype(jnp.int32))
 
 
+@full_precision
 def simulate(
     model: Model,
     params: Params,
@@ -684,6 +688,7 @@ def _frame_function(model: Model, params: Params, observe, checkpoint, base: _He
     return frame
 
 
+@full_precision
 def run_frames(
     model: Model,
     params: Params,

@@ -67,6 +67,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..errors import ObservationError
+from ..precision import full_precision
 from .camera import Camera
 from .volume import (
     AbstractRenderer,
@@ -359,6 +360,7 @@ class SurfelRenderer(AbstractRenderer):
 
     # --- rendering -------------------------------------------------------------------
 
+    @full_precision
     def render(
         self,
         positions: Float[Array, "N 3"],
@@ -406,6 +408,7 @@ class SurfelRenderer(AbstractRenderer):
         out = self._pixel_loop(pair_fn, (terms, opac, colors), boxes, camera, pixels)
         return finish_image(out, camera, pixels)
 
+    @full_precision
     def silhouette(
         self,
         positions: Float[Array, "N 3"],

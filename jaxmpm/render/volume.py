@@ -44,6 +44,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..errors import ObservationError
+from ..precision import full_precision
 from .camera import Camera
 
 DEFAULT_COLOR = (0.85, 0.45, 0.2)
@@ -423,6 +424,7 @@ class VolumeRenderer(AbstractRenderer):
         bg = jnp.asarray(self.background, dtype=dtype)
         return composite(-jnp.expm1(log_keep), log_keep, z, lambda w: jnp.sum(w[..., None] * color, axis=1), bg)
 
+    @full_precision
     def render(
         self,
         positions: Float[Array, "N 3"],
