@@ -3,8 +3,10 @@ target 4: <= 10 min on 2 idle cores).
 
 A 2D elastic block (E = 3 kPa or ``--E``, dx = 9 mm, ppc 4: 1,452 particles) thrown at
 (1.5, 0.5) m/s (``--velocity``) onto a slip floor (``--contact sticky``), 60 frames x 100
-substeps, tracked with 1 mm noise; the data hide a gravity error (delta g = (0, -2) m/s^2 or
-``--delta``, ``--hidden gravity``) or nothing (``--hidden none``, the control). `discover`
+substeps, tracked with 1 mm noise; the block's bottom starts ``--height`` (0.1 m) above the
+floor; the data hide a gravity error (delta g = (0, -2) m/s^2 or ``--delta``, ``--hidden
+gravity``), Coulomb friction on the floor (``--hidden friction --friction 0.3``) or nothing
+(``--hidden none``, the control). `discover`
 gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
 check). Prints the verdict, the cause, the held-out gain, the wall and CPU seconds.
 

@@ -24,11 +24,11 @@ import numpy as np
 
 from ..errors import ObservationError, SimulationError
 from ..fit_report import format_value
+from ..render import tile_views
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
-from ..render import tile_views
 from .refine import BodyRefinement, refine_body
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
