@@ -2,7 +2,7 @@
 
 On a GPU the default float32 matrix product is TF32, which made a silhouette fit stall
 (docs/benchmarks.md, "On a GPU"); the CPU computes both the same way, so these tests check
-the traced programs: every ``dot_general`` of the step, ``simulate``, ``run_frames`` and the
+the traced programs: every ``dot_general`` of the step, ``simulate`` (and its gradient) and the
 renderers carries ``Precision.HIGHEST``, and a plain product traced beside them does not (the
 check can fail).
 """
@@ -16,8 +16,8 @@ import pytest
 from scenes import block_spec
 
 from jaxmpm.render import SurfelRenderer, VolumeRenderer, look_at
-from jaxmpm.scene import load_scene
 from jaxmpm.model import initial_state
+from jaxmpm.scene import load_scene
 from jaxmpm.step import simulate, step
 
 HIGHEST = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
