@@ -9,6 +9,7 @@ from . import identify as identify
 from . import parameters as parameters
 from . import reconstruct as reconstruct
 from . import render as render
+from .cache import enable_compilation_cache as enable_compilation_cache
 from .colliders import Box as Box
 from .colliders import Collider as Collider
 from .colliders import GaussianDisks as GaussianDisks

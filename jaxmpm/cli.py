@@ -366,7 +366,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .cache import enable_compilation_cache
+
     args = build_parser().parse_args(argv)
+    enable_compilation_cache()  # compiled programs are reused by later runs (JAXMPM_CACHE_DIR=off: not)
     try:
         return args.func(args)
     except (JaxmpmError, OSError) as err:  # OSError: an unwritable --out, a full disk

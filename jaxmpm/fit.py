@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
@@ -57,8 +58,8 @@ from .identify.parameters import (
     to_unconstrained,
     transform_of,
 )
-from .identify.residuals import Objective, build_objective, frames_needed
-from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, residuals_and_jacobian
+from .identify.residuals import Objective, Residuals, build_objective, frames_needed
+from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation, check_observation_matches, check_scene_compatible
@@ -471,23 +472,21 @@ def fit(
         while True:
             objective = build_objective(model, observation, until=stage.until, **objective_options)
             fixed = {n: v for n, v in y_all.items() if n not in stage.names}
-            base = apply_unconstrained(model, params, list(fixed), fixed)
             snames = list(stage.names)
-
-            def params_of(y, base=base, snames=snames):
-                return apply_unconstrained(model, base, snames, y)
-
+            stage_residuals = StageResiduals(objective.program, apply_unconstrained(model, params, list(fixed), fixed),
+                                             tuple(snames))
+            params_of = stage_residuals.params
             y0 = {n: y_all[n] for n in snames}
             to_scan = [n for n in snames if n in scan_left]
             if to_scan:
-                y0, scanned = stage_scan = scan_start(objective, params_of, y0, to_scan, c.scan)
+                y0, scanned = stage_scan = scan_start(stage_residuals, y0, to_scan, c.scan)
                 scan_left.difference_update(to_scan)
                 y_all.update(y0)
                 moved = ", ".join(f"{n} x10^{d:+g}" for n, d in scanned["moved"].items()) or "none moved"
                 notes.append(f"stage {si + 1}: scanned {scanned['points']} starting points ({moved}); "
                              f"loss {scanned['start_loss']:.4g} -> {scanned['best_loss']:.4g}")
                 say(notes[-1])
-            outcome = _solve(stage_method, objective, params_of, y0, c, steps=steps, seed=c.seed + si,
+            outcome = _solve(stage_method, objective, stage_residuals, y0, c, steps=steps, seed=c.seed + si,
                              progress=progress, offset=total_iterations)
             if outcome.unhealthy_start:
                 why = objective.health(params_of(y0)) or "the loss is not finite (NaN residuals)"
@@ -536,7 +535,7 @@ def fit(
         final_names = [n for n in snames if last_stage_of[n] == si]
         if c.uncertainty and final_names:
             t_std = time.perf_counter()
-            stage_std = _stage_std(objective, params_of, {n: y_all[n] for n in snames}, outcome.jacobian)
+            stage_std = _stage_std(objective, stage_residuals, {n: y_all[n] for n in snames}, outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
             record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
         if replans_left and stage.until is not None and set(snames) == set(vel_names):
@@ -599,46 +598,64 @@ def fit(
     )
 
 
-def _solve(method: str, objective: Objective, params_of, y0: dict, c: FitConfig, *, steps: int, seed: int,
-           progress, offset: int) -> SolverOutcome:
+class StageResiduals(eqx.Module):
+    """The residuals of one stage as a function of its variables ``y`` (a dict of
+    optimisation-space values by name): the objective's
+    :class:`~jaxmpm.identify.residuals.Residuals` at ``base`` with ``names`` set from ``y``.
+    A pytree: stages that fit the same names over windows of one observation share one
+    compiled residual-and-Jacobian program (:func:`jaxmpm.identify.solvers.residuals_and_jacobian`)."""
+
+    program: Residuals
+    base: Params
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    def params(self, y: dict) -> Params:
+        """``base`` with the stage's names set from ``y``."""
+        return apply_unconstrained(self.program.model, self.base, list(self.names), y)
+
+    def __call__(self, y: dict):
+        return self.program(self.params(y)).astype(jnp.result_type(float))
+
+
+def _solve(method: str, objective: Objective, residuals: StageResiduals, y0: dict, c: FitConfig, *, steps: int,
+           seed: int, progress, offset: int) -> SolverOutcome:
     """One stage's solver run on ``objective`` over the variables ``y0`` (optimisation space)."""
     dtype = jnp.result_type(float)
     if method == "lm":
-        def residuals(y):
-            return objective.residuals(params_of(y)).astype(dtype)
-
         return levenberg_marquardt(residuals, y0, max_steps=steps, rtol=c.rtol, atol=c.atol, progress=progress,
                                    offset=offset)
     if method == "bfgs":
         def loss(y):
-            return objective.loss(params_of(y)).astype(dtype)
+            return objective.loss(residuals.params(y)).astype(dtype)
 
         return bfgs(loss, y0, max_steps=steps, rtol=c.rtol, atol=c.atol, progress=progress, offset=offset)
 
     def loss(y, key):
-        return objective.loss(params_of(y), key).astype(dtype)
+        return objective.loss(residuals.params(y), key).astype(dtype)
 
     return adam(loss, y0, max_steps=steps, learning_rates=c.learning_rates, lr_decay=c.lr_decay, xtol=c.xtol,
                 patience=c.patience, grad=c.grad, seed=seed, progress=progress, offset=offset, names=list(y0))
 
 
-def scan_start(objective: Objective, params_of, y0: dict, names: Sequence[str], offsets: Sequence[float]):
-    """A coarse, coordinate-wise look at the loss before a stage: each of ``names`` (scalar
-    log10 variables of ``y0``) in turn is moved to ``y0[name] + offset`` for every offset,
-    the others held at the best point so far, and kept where the loss is lowest.
+def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str], offsets: Sequence[float]):
+    """A coarse, coordinate-wise look at the loss ``sum(residuals(y)**2)`` before a stage:
+    each of ``names`` (scalar log10 variables of ``y0``) in turn is moved to
+    ``y0[name] + offset`` for every offset, the others held at the best point so far, and
+    kept where the loss is lowest.
 
     Unhealthy points (NaN loss) are skipped. Costs ``len(names) × len(offsets)`` rollouts of
-    the stage's window.
+    the stage's window (compiled once with the stage's escapes,
+    :func:`jaxmpm.identify.solvers.loss_function`).
 
     Returns:
         ``(y, scanned)``: the best point (optimisation space) and a record ``{"points",
         "start_loss", "best_loss", "moved": {name: offset}}`` for fit.json and the notes.
     """
-    dtype = jnp.result_type(float)
-    loss_of = jax.jit(lambda y: objective.loss(params_of(y)).astype(dtype))
+    loss_of = loss_function(residuals, y0)
+    flatten = lambda y: jax.flatten_util.ravel_pytree(y)[0]  # noqa: E731
 
     def loss(y):
-        value = float(loss_of(y))
+        value = float(loss_of(flatten(y)))
         return value if np.isfinite(value) else np.inf
 
     best = dict(y0)
@@ -656,14 +673,13 @@ def scan_start(objective: Objective, params_of, y0: dict, names: Sequence[str], 
     return best, {"points": points, "start_loss": start, "best_loss": best_loss, "moved": moved}
 
 
-def _stage_std(objective: Objective, params_of, y: dict, jacobian=None) -> dict[str, np.ndarray]:
+def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobian=None) -> dict[str, np.ndarray]:
     """Gauss–Newton standard deviations (physical units) of the variables ``y`` of one stage;
     ``jacobian``: the solver's ``(rj, (r, J) at y or None)`` when it has them (no recompilation)."""
-    dtype = jnp.result_type(float)
     rj, at_y = jacobian if jacobian is not None else (None, None)
     flat, unravel = jax.flatten_util.ravel_pytree(y)
     if rj is None:
-        rj = residuals_and_jacobian(lambda v: objective.residuals(params_of(v)).astype(dtype), y)[0]
+        rj = residuals_and_jacobian(residuals, y)[0]
     r, J = at_y if at_y is not None else (np.asarray(a, np.float64) for a in rj(flat))
     cov = gauss_newton_covariance(J, r, count=objective.count)
     std_y = unravel(jnp.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), flat.dtype))

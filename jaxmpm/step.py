@@ -445,6 +445,13 @@ class Trajectory(eqx.Module):
     wave_cfl: Float[Array, " T"]
     final: State
 
+    def head(self, frames: int) -> "Trajectory":
+        """The first ``frames`` frames (``final`` unchanged)."""
+        cut = lambda a: None if a is None else jax.tree_util.tree_map(lambda b: b[:frames], a)  # noqa: E731
+        return Trajectory(times=self.times[:frames], x=self.x[:frames], v=self.v[:frames], extra=cut(self.extra),
+                          cfl=self.cfl[:frames], nan=self.nan[:frames], left=self.left[:frames],
+                          energy_gain=self.energy_gain[:frames], wave_cfl=self.wave_cfl[:frames], final=self.final)
+
     def first_unstable_frame(self, cfl_limit: float = 1.0) -> int | None:
         """Index of the first frame that :func:`unhealthy` flags, or None."""
         bad = np.asarray(unhealthy(self, cfl_limit))
@@ -586,6 +593,7 @@ def simulate(
     checkpoint: str | None = "nested",
     observe: Callable[[State], Any] | None = None,
     frames: int | None = None,
+    active: int | Int[Array, ""] | None = None,
 ) -> Trajectory:
     """Roll the model out over ``frames`` output frames (default ``model.frames``).
 
@@ -603,6 +611,10 @@ def simulate(
             plus one per substep of the frame being differentiated).
         observe: optional function of the state whose values are stacked per frame.
         frames: number of output frames including t = 0.
+        active: simulate only the first ``active`` frames (a traced integer may be given);
+            the later ones hold the last simulated state (same outputs, CFL 0). The shapes
+            stay those of ``frames``, so windows of one observation share a compilation
+            while their cost follows the window (``fit``'s stages). Default: all.
 
     Returns:
         A :class:`Trajectory` (judge its health with :func:`unhealthy`).
@@ -613,8 +625,16 @@ def simulate(
     model, params, state = _start(model, params, state)
     base = _health_baseline(model, params, state)
     frame = _frame_function(model, params, observe, checkpoint, base)
-    first = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
-    final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
+    zero = jnp.zeros((), state.x.dtype)
+    first = _frame_outputs(model, params, state, observe, zero, base)
+    if active is None:
+        final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
+    else:
+        def frame_or_hold(s, i):
+            hold = lambda s: (s, _frame_outputs(model, params, s, observe, zero, base))  # noqa: E731
+            return jax.lax.cond(i < active, lambda s: frame(s, None), hold, s)
+
+        final, rest = jax.lax.scan(frame_or_hold, state, jnp.arange(1, frames))
     out = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, rest)
     return _trajectory(model, out, final)
 

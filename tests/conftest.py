@@ -3,19 +3,39 @@
 A test that needs float64 (finite differences, tight references) says so with
 ``@pytest.mark.x64`` (or ``pytestmark = pytest.mark.x64`` for a whole file): x64 is then on
 for that test's setup, call and teardown only (``jax.enable_x64`` is a scoped context).
+
+Compiled programs go to a persistent compilation cache of this run only (a fresh folder,
+shared by the xdist workers and the commands the tests start, removed at the end): a
+program compiled by one test is loaded by the next that needs it, and nothing is kept
+between runs or read from the user's cache.
 """
+
+import os
+import shutil
+import tempfile
 
 import jax
 import pytest
+
+from jaxmpm.cache import CACHE_ENV, enable_compilation_cache
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
 def pytest_configure(config):
+    if not hasattr(config, "workerinput"):  # the controller (or a run without xdist): this run's folder
+        config._jaxmpm_cache = os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix="jaxmpm-test-xla-")
+    enable_compilation_cache(os.environ[CACHE_ENV])
     config.addinivalue_line("markers", "x64: run this test with float64 enabled (jax.enable_x64), scoped to the test")
     # without x64 a float64 request silently gives float32: make it an error, so a test that
     # needs float64 and lacks the marker fails instead of passing on weaker arithmetic
     config.addinivalue_line("filterwarnings", "error:Explicitly requested dtype.*float64:UserWarning")
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_jaxmpm_cache", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)

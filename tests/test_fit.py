@@ -73,26 +73,25 @@ def test_fit_rejects_mismatched_tracks():
         fit(scene.model, scene.params, bad, ["mu"])
 
 
-class _Plateau:
-    """A loss of one log10 variable, flat far from its minimum at y = 2.3 and NaN at y >= 3.9."""
-
-    def loss(self, params):
-        y = params["mu"]
-        return jnp.where(y >= 3.9, jnp.nan, jnp.tanh((y - 2.3) ** 2) + 0.0 * params["v"])
+def _plateau(y):
+    """Residuals of one log10 variable whose loss is flat far from its minimum at y = 2.3 and
+    NaN at y >= 3.9."""
+    mu = y["mu"]
+    return jnp.where(mu >= 3.9, jnp.nan, jnp.sqrt(jnp.tanh((mu - 2.3) ** 2)) + 0.0 * y["v"])[None]
 
 
 def test_scan_start_keeps_the_lowest_loss_and_skips_unhealthy_points():
     from jaxmpm.fit import scan_start
 
     y0 = {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.5)}
-    y, rec = scan_start(_Plateau(), lambda y: y, y0, ["mu"], (-1.0, 1.0, 2.0, 3.0))
+    y, rec = scan_start(_plateau, y0, ["mu"], (-1.0, 1.0, 2.0, 3.0))
     assert float(y["mu"]) == pytest.approx(2.0) and float(y["v"]) == 0.5  # 10^2 beats 10^3 (0.09 vs 0.49 after tanh)
     assert rec["moved"] == {"mu": 1.0} and rec["points"] == 5
     assert rec["best_loss"] == pytest.approx(np.tanh(0.09), rel=1e-5) and rec["start_loss"] == pytest.approx(np.tanh(1.69), rel=1e-5)
     # an unhealthy point (+3 decades: NaN) is never taken, and an unhealthy start is left for any healthy point
-    y, rec = scan_start(_Plateau(), lambda y: y, {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.0)}, ["mu"], (3.0,))
+    y, rec = scan_start(_plateau, {"mu": jnp.asarray(1.0), "v": jnp.asarray(0.0)}, ["mu"], (3.0,))
     assert float(y["mu"]) == 1.0 and rec["moved"] == {}
-    y, rec = scan_start(_Plateau(), lambda y: y, {"mu": jnp.asarray(4.0), "v": jnp.asarray(0.0)}, ["mu"], (-1.0, -2.0))
+    y, rec = scan_start(_plateau, {"mu": jnp.asarray(4.0), "v": jnp.asarray(0.0)}, ["mu"], (-1.0, -2.0))
     assert float(y["mu"]) == pytest.approx(2.0) and rec["moved"] == {"mu": -2.0} and rec["start_loss"] == np.inf
 
 

@@ -203,6 +203,9 @@ _PATTERNS: list[tuple[re.Pattern, Callable[..., ProbeFn]]] = [
 ]
 
 
+_BUILT: dict[str, ProbeFn] = {}
+
+
 def probe_names() -> list[str]:
     """The registered and built-in probe names (patterns shown with placeholders)."""
     return sorted(_REGISTRY) + ["front_x|y|z", "back_x|y|z", "top_y", "height", "centroid_x|y|z", "gauge@X[,Z]"]
@@ -218,13 +221,18 @@ def probe_function(name: str, extra: dict[str, ProbeFn] | None = None) -> ProbeF
         return extra[name]
     if name in _REGISTRY:
         return _REGISTRY[name]
+    if name in _BUILT:
+        return _BUILT[name]
     for pattern, factory in _PATTERNS:
         m = pattern.fullmatch(name)
         if m:
             try:
-                return factory(*[g for g in m.groups() if g is not None])
+                fn = factory(*[g for g in m.groups() if g is not None])
             except ValueError:
                 break
+            # one function per name: a term built twice (a fit's windows) compares equal, and
+            # compiled programs keyed on it are shared
+            return _BUILT.setdefault(name, fn)
     raise ObservationError(
         f"unknown probe {name!r}: register it with jaxmpm.identify.register_probe({name!r}, fn) or pass "
         f"probes={{{name!r}: fn}}; known probes: {', '.join(probe_names())}"
@@ -510,28 +518,32 @@ class Tracks(Term):
 
 
 def track_term(model: Model, obs: Observation, sel: np.ndarray, dtype, *, normalise: str = "term",
-               weight: float = 1.0) -> tuple[Tracks, Layout]:
-    """The tracks term of the observed times ``sel`` (boolean ``(T_obs,)``)."""
+               weight: float = 1.0, window: np.ndarray | None = None) -> tuple[Tracks, Layout]:
+    """The tracks term of the observed times ``sel`` (boolean ``(T_obs,)``), fitting those of
+    them in ``window`` (boolean over the selected times; default all): the others keep their
+    entries, at scale 0 (see :func:`build_objective`)."""
     _check_normalise(normalise)
     positions = np.asarray(obs.positions, float)[sel]
     times = np.asarray(obs.times, float)[sel]
     T, N, D = positions.shape
+    on = np.ones(T, bool) if window is None else np.asarray(window, bool)
     by_id = check_tracks(model, positions, obs.point_ids)
     valid = ~np.any(np.isnan(positions), axis=-1)
-    if not valid.any():
+    fitted = valid & on[:, None]
+    if not fitted.any():
         raise ObservationError("the observed tracks are all NaN in the fitted time window")
     per_frame = N * D if by_id else N + model.num_particles
     if normalise == "term":  # the mean squared distance per point (m^2), times the weight
-        n = int(valid.sum()) if by_id else T * per_frame
+        n = int(fitted.sum()) if by_id else int(on.sum()) * per_frame
         scale = np.full(T, math.sqrt(weight / max(n, 1)))
     else:  # each frame's mean squared error per coordinate (per distance for Chamfer)
         scale = 1.0 / np.sqrt(np.maximum(valid.sum(axis=1) * D if by_id else valid.sum(axis=1) + model.num_particles, 1))
     term = Tracks(frame_dt=float(model.frame_dt), times=jnp.asarray(times, dtype),
                   target=jnp.asarray(np.where(valid[..., None], positions, 0.0), dtype), valid=jnp.asarray(valid),
-                  scale=jnp.asarray(scale, dtype), by_id=by_id)
-    count = int(valid.sum()) * D if by_id else int(valid.sum()) + T * model.num_particles
-    layout = Layout("tracks", weight, count, np.repeat(np.arange(T), per_frame), times, ["tracks"] * T,
-                    _frame_labels(times))
+                  scale=jnp.asarray(np.where(on, scale, 0.0), dtype), by_id=by_id)
+    count = int(fitted.sum()) * D if by_id else int(fitted.sum()) + int(on.sum()) * model.num_particles
+    layout = Layout("tracks", weight, count, np.repeat(np.where(on, np.arange(T), -1), per_frame), times,
+                    ["tracks"] * T, _frame_labels(times))
     return term, layout
 
 
@@ -618,6 +630,7 @@ class _PixelTerm(Term):
     fixed: Int[Array, "T V n"]
     cand_table: Int[Array, "V C"]
     cand_count: Int[Array, " V"]
+    active: Bool[Array, " T"]  # the times fitted (the others are not rendered; their residuals are 0)
     n_uniform: int = eqx.field(static=True)
 
     def pixels(self, key):
@@ -654,11 +667,15 @@ class Silhouette(_PixelTerm):
         dtype = x.dtype
 
         def one(args):
-            xt, pt, mt = args
-            pred = render_pixels(self.renderer, xt, self.cameras, pt, silhouette_only=True)
-            return pred - as_unit_float(jax.vmap(lambda m, p: m[p])(mt, pt), dtype)
+            xt, pt, mt, on = args
 
-        r = jax.lax.map(one, (x, pix, self.masks))
+            def compare(_):
+                pred = render_pixels(self.renderer, xt, self.cameras, pt, silhouette_only=True)
+                return pred - as_unit_float(jax.vmap(lambda m, p: m[p])(mt, pt), dtype)
+
+            return jax.lax.cond(on, compare, lambda _: jnp.zeros(pt.shape, dtype), None)
+
+        r = jax.lax.map(one, (x, pix, self.masks, self.active))
         return (self.scale[:, None, None] * r).reshape(-1)
 
 
@@ -680,51 +697,68 @@ class MaskedRGB(_PixelTerm):
         dtype = x.dtype
 
         def one(args):
-            xt, pt, it, mt = args
-            pred = render_pixels(self.renderer, xt, self.cameras, pt, self.colors).rgb
-            target = as_unit_float(jax.vmap(lambda im, p: im[p])(it, pt), dtype)
-            m = jnp.ones(pt.shape, dtype) if mt is None else as_unit_float(jax.vmap(lambda mm, p: mm[p])(mt, pt), dtype)
-            return m[..., None] * (pred - target), jnp.sum(m)
+            xt, pt, it, mt, on = args
 
-        r, msum = jax.lax.map(one, (x, pix, self.images, self.masks))
+            def compare(_):
+                pred = render_pixels(self.renderer, xt, self.cameras, pt, self.colors).rgb
+                target = as_unit_float(jax.vmap(lambda im, p: im[p])(it, pt), dtype)
+                m = jnp.ones(pt.shape, dtype) if mt is None else as_unit_float(jax.vmap(lambda mm, p: mm[p])(mt, pt), dtype)
+                return m[..., None] * (pred - target), jnp.sum(m)
+
+            skip = lambda _: (jnp.zeros(pt.shape + (3,), dtype), jnp.zeros((), dtype))  # noqa: E731
+            return jax.lax.cond(on, compare, skip, None)
+
+        r, msum = jax.lax.map(one, (x, pix, self.images, self.masks, self.active))
         return math.sqrt(self.weight / 3.0) * r.reshape(-1) / jnp.sqrt(jnp.maximum(jnp.sum(msum), 1.0))
 
 
 def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weights: dict, renderer, num_pixels: int,
                 uniform_fraction: float = 0.25, margin: int | None = None, seed: int = 0, colors=None,
-                normalise: str = "term") -> list[tuple[_PixelTerm, Layout]]:
+                normalise: str = "term", window: np.ndarray | None = None) -> list[tuple[_PixelTerm, Layout]]:
     """The silhouette and masked-RGB terms (those with a positive weight) of the observed
     times ``sel``, on one fixed pixel batch per view and frame: ``1 − uniform_fraction`` of
     it from the union over frames of each view's masks dilated by ``margin`` pixels (default
     5 % of the image size), the rest uniform over the image. A 2D scene is rendered lifted onto
-    the layers :func:`lifted_layers`."""
+    the layers :func:`lifted_layers`. Only the times in ``window`` (boolean over the selected
+    times; default all) are rendered and fitted; the pixel batch is the same for every window."""
     _check_normalise(normalise)
     cams = _check_cameras(obs, dtype)
     V, H, W = cams.num_views, cams.height, cams.width
     times = np.asarray(obs.times, float)[sel]
     T = len(times)
+    on = np.ones(T, bool) if window is None else np.asarray(window, bool)
+    T_on = int(on.sum())
+    groups = np.where(on, np.arange(T), -1)
     masks = None if obs.masks is None else np.asarray(obs.masks)[:, sel]
     images = None if obs.images is None else np.asarray(obs.images)[:, sel]
     n = int(min(num_pixels, H * W))
     if margin is None:
         margin = max(2, int(round(0.05 * max(H, W))))
-    cand = _candidates(masks, margin) if masks is not None else [np.arange(H * W)] * V
-    cand = [c if len(c) else np.arange(H * W) for c in cand]
-    L = max(len(c) for c in cand)
+    def candidates(frames):
+        cand = _candidates(masks[:, frames], margin) if masks is not None else [np.arange(H * W)] * V
+        return [c if len(c) else np.arange(H * W) for c in cand]
+
+    # the pixels are drawn from the window's masks (as if only its times were observed); the
+    # table is as long as the whole observation needs, so that its shape is the same in every window
+    cand = candidates(on)
+    L = max(len(c) for c in candidates(np.ones(T, bool)))
+    fixed = np.zeros((T, V, n), np.int32)
+    fixed[on] = _fixed_pixels(np.random.default_rng(seed), cand, T_on, H, W, n, uniform_fraction)
     shared = dict(
         frame_dt=float(model.frame_dt), times=jnp.asarray(times, dtype), cameras=cams, renderer=renderer,
         lift=jnp.asarray(lifted_layers(model) if model.dim == 2 else np.zeros(0), dtype),
         masks=None if masks is None else jnp.asarray(np.swapaxes(masks, 0, 1).reshape(T, V, H * W)),
-        fixed=jnp.asarray(_fixed_pixels(np.random.default_rng(seed), cand, T, H, W, n, uniform_fraction)),
+        fixed=jnp.asarray(fixed),
         cand_table=jnp.asarray(np.stack([np.resize(c, L) for c in cand]).astype(np.int32)),
-        cand_count=jnp.asarray([len(c) for c in cand], jnp.int32), n_uniform=int(round(uniform_fraction * n)),
+        cand_count=jnp.asarray([len(c) for c in cand], jnp.int32), active=jnp.asarray(on),
+        n_uniform=int(round(uniform_fraction * n)),
     )
     out = []
     w_sil = weights.get("silhouette", 0.0)
     if masks is not None and w_sil > 0:
-        per_frame = math.sqrt(w_sil / T) if normalise == "term" else 1.0
-        term = Silhouette(scale=jnp.full(T, per_frame / math.sqrt(V * n), dtype), **shared)
-        out.append((term, Layout("silhouette", w_sil, T * V * n, np.repeat(np.arange(T), V * n), times,
+        per_frame = math.sqrt(w_sil / T_on) if normalise == "term" else 1.0
+        term = Silhouette(scale=jnp.asarray(np.where(on, per_frame / math.sqrt(V * n), 0.0), dtype), **shared)
+        out.append((term, Layout("silhouette", w_sil, T_on * V * n, np.repeat(groups, V * n), times,
                                  ["silhouette"] * T, _frame_labels(times))))
     w_rgb = weights.get("rgb", 0.0)
     if images is not None and w_rgb > 0:
@@ -734,12 +768,47 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
             colors = particle_colors(model, obs, cams)
         term = MaskedRGB(images=jnp.asarray(np.swapaxes(images, 0, 1).reshape(T, V, H * W, 3)),
                          colors=None if colors is None else jnp.asarray(colors, dtype), weight=w_rgb, **shared)
-        out.append((term, Layout("rgb", w_rgb, T * V * n * 3, np.repeat(np.arange(T), V * n * 3), times,
+        out.append((term, Layout("rgb", w_rgb, T_on * V * n * 3, np.repeat(groups, V * n * 3), times,
                                  ["rgb"] * T, _frame_labels(times))))
     return out
 
 
 # =========================================================================== the objective
+
+
+class Residuals(eqx.Module):
+    """The residual vector of a parameter set (the pure part of an :class:`Objective`).
+
+    A pytree: the rollout over ``length`` output frames, of which the first ``active`` are
+    simulated (:func:`jaxmpm.simulate`'s ``active``), compared with the data by the terms.
+    Objectives of one observation over different windows differ only in arrays (``active``,
+    the terms' scales), so a function compiled for one (``equinox.filter_jit``) serves them
+    all: ``fit``'s stages compile their residual program once per set of fitted names.
+
+    ``__call__(params, key=None) -> (M,)``: NaN everywhere when the rollout is unhealthy.
+    """
+
+    model: Model
+    terms: tuple
+    active: Int[Array, ""]
+    length: int = eqx.field(static=True)
+    checkpoint: str | None = eqx.field(static=True)
+    cfl_limit: float = eqx.field(static=True)
+
+    def simulate(self, params: Params) -> Trajectory:
+        return simulate(self.model, params, checkpoint=self.checkpoint, frames=self.length, active=self.active)
+
+    def term_residuals(self, traj: Trajectory, key=None) -> list:
+        """Per term its residual vector for a rollout (no health check)."""
+        frames = Frames.of(traj)
+        t0 = jnp.zeros((), traj.x.dtype)
+        keys = [None] * len(self.terms) if key is None else list(jax.random.split(key, len(self.terms)))
+        return [t.residuals(frames, t0, k) for t, k in zip(self.terms, keys)]
+
+    def __call__(self, params: Params, key=None):
+        traj = self.simulate(params)
+        r = jnp.concatenate(self.term_residuals(traj, key))
+        return jnp.where(jnp.any(unhealthy(traj, self.cfl_limit)), jnp.nan, r)
 
 
 class Objective:
@@ -748,26 +817,29 @@ class Objective:
     Built by :func:`build_objective`. ``residuals(params, key=None)`` is the weighted
     residual vector (NaN everywhere when the simulation is unhealthy, :func:`jaxmpm.step.unhealthy`:
     NaN values, a CFL number above ``cfl_limit``, energy growth, a stress-wave CFL number above
-    1); ``loss(params, key=None) = sum(residuals**2)``.
+    1); ``loss(params, key=None) = sum(residuals**2)``. The vector has an entry for every
+    observed sample, those outside the window at 0 (the same length in every window).
     ``residuals_of(trajectory)`` evaluates a rollout made elsewhere (e.g. inside
-    :func:`jaxmpm.sweep`).
+    :func:`jaxmpm.sweep`) over :attr:`length` frames.
 
     Attributes:
         model: the model (its substeps are those of the fit's current dt).
+        program: the :class:`Residuals` (a pytree; ``residuals`` calls it).
         frames: output frames simulated (covering the window).
+        length: output frames of the rollout's arrays (covering every observed time).
         terms: the terms' names and weights.
         layouts: per term its :class:`Layout`.
         count: informative residual entries (for the Gauss–Newton covariance).
         until: last observed time included (seconds), or None for all.
+        times: the observed times in the window (seconds).
     """
 
-    def __init__(self, model, terms, frames, checkpoint, cfl_limit, until, times):
-        self.model = model
-        self._terms = [t for t, _ in terms]
-        self.layouts = [layout for _, layout in terms]
+    def __init__(self, program: Residuals, layouts, frames: int, until, times):
+        self.program = program
+        self.model = program.model
+        self.layouts = list(layouts)
         self.frames = frames
-        self.checkpoint = checkpoint
-        self.cfl_limit = cfl_limit
+        self.length = program.length
         self.until = until
         self.times = times
 
@@ -780,22 +852,14 @@ class Objective:
         return sum(layout.count for layout in self.layouts)
 
     def simulate(self, params: Params) -> Trajectory:
-        return simulate(self.model, params, checkpoint=self.checkpoint, frames=self.frames)
+        return self.program.simulate(params)
 
     def residuals(self, params: Params, key=None):
-        traj = self.simulate(params)
-        r = self.residuals_of(traj, key)
-        return jnp.where(jnp.any(unhealthy(traj, self.cfl_limit)), jnp.nan, r)
-
-    def _term_residuals(self, traj: Trajectory, key=None) -> list:
-        frames = Frames.of(traj)
-        t0 = jnp.zeros((), traj.x.dtype)
-        keys = [None] * len(self._terms) if key is None else list(jax.random.split(key, len(self._terms)))
-        return [t.residuals(frames, t0, k) for t, k in zip(self._terms, keys)]
+        return self.program(params, key)
 
     def residuals_of(self, traj: Trajectory, key=None):
         """The residual vector of a rollout (no health check)."""
-        return jnp.concatenate(self._term_residuals(traj, key))
+        return jnp.concatenate(self.program.term_residuals(traj, key))
 
     def loss(self, params: Params, key=None):
         r = self.residuals(params, key)
@@ -803,13 +867,18 @@ class Objective:
 
     def term_losses(self, params: Params) -> dict[str, float]:
         """Each term's share of the loss (a diagnostic; runs one simulation)."""
-        traj = jax.jit(self.simulate)(params)
-        return {layout.name: float(jnp.sum(r**2)) for layout, r in zip(self.layouts, self._term_residuals(traj))}
+        traj = eqx.filter_jit(self.program.simulate)(params)
+        return {layout.name: float(jnp.sum(r**2))
+                for layout, r in zip(self.layouts, self.program.term_residuals(traj))}
 
     def health(self, params: Params) -> str | None:
-        """None when the rollout at ``params`` is healthy, else the one line of
-        :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
-        return health_message(self.model, forward(self.model, params, self.frames), self.cfl_limit)
+        """None when the rollout at ``params`` is healthy over the window, else the one line
+        of :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
+        return health_message(self.model, forward(self.model, params, self.length).head(self.frames), self.cfl_limit)
+
+    @property
+    def cfl_limit(self) -> float:
+        return self.program.cfl_limit
 
 
 def _default_weights(obs: Observation) -> dict[str, float]:
@@ -886,29 +955,35 @@ def build_objective(
     times = np.asarray(observation.times, float)
     if np.any(times < 0):
         raise ObservationError("observed times must be >= 0 (seconds since the scene's start)")
-    sel = np.ones(len(times), bool) if until is None else times <= until + 1e-4 * model.frame_dt
-    if not sel.any():
+    window = np.ones(len(times), bool) if until is None else times <= until + 1e-4 * model.frame_dt
+    if not window.any():
         raise ObservationError(f"no observed time lies within the window t <= {until:g} s")
-    t_probe = []
+    t_probe, t_probe_all = [], []
     if w["probes"] > 0:
         pt = np.asarray(observation.probe_times, float)
-        ok = np.isfinite(pt) & (pt >= 0) & ((pt <= until + 1e-4 * model.frame_dt) if until is not None else True)
-        t_probe = pt[ok].tolist()
-    t_data = times[sel].tolist() if any(w[k] > 0 for k in ("tracks", "silhouette", "rgb")) else []
+        ok = np.isfinite(pt) & (pt >= 0)
+        t_probe_all = pt[ok].tolist()
+        t_probe = pt[ok & ((pt <= until + 1e-4 * model.frame_dt) if until is not None else True)].tolist()
+    imaged = any(w[k] > 0 for k in ("tracks", "silhouette", "rgb"))
+    t_data = times[window].tolist() if imaged else []
     t_all = np.asarray(t_data + t_probe, float)
     if len(np.unique(np.round(t_all / model.frame_dt, 6))) < 2 or np.max(t_all) <= 0:
         raise ObservationError(
             f"too few observed frames to fit: need samples at two or more distinct times after t = 0, got {len(t_all)}"
         )
     frames = frames_needed(model, t_all)
+    length = frames_needed(model, np.asarray((times.tolist() if imaged else []) + t_probe_all + [0.0], float))
     dtype = model.bodies[0].x0.dtype
+    every = np.ones(len(times), bool)
     terms: list[tuple[Term, Layout]] = []
     if w["tracks"] > 0:
-        terms.append(track_term(model, observation, sel, dtype, weight=w["tracks"]))
+        terms.append(track_term(model, observation, every, dtype, weight=w["tracks"], window=window))
     if w["silhouette"] > 0 or w["rgb"] > 0:
-        terms += image_terms(model, observation, sel, dtype, weights=w, renderer=make_fit_renderer(renderer, model),
+        terms += image_terms(model, observation, every, dtype, weights=w, renderer=make_fit_renderer(renderer, model),
                              num_pixels=num_pixels, uniform_fraction=uniform_fraction, margin=pixel_margin,
-                             seed=pixel_seed, colors=colors)
+                             seed=pixel_seed, colors=colors, window=window)
     if w["probes"] > 0:
         terms.append(probe_term(model, observation, until, dtype, extra=probes, weight=w["probes"]))
-    return Objective(model, terms, frames, checkpoint, cfl_limit, until, times[sel])
+    program = Residuals(model, tuple(t for t, _ in terms), jnp.asarray(frames, jnp.int32), length, checkpoint,
+                        float(cfl_limit))
+    return Objective(program, [layout for _, layout in terms], frames, until, times[window])

@@ -36,6 +36,7 @@ __all__ = [
     "SolverOutcome",
     "MAX_REJECTED_STEPS",
     "residuals_and_jacobian",
+    "loss_function",
     "gauss_newton_step",
     "at_round_off_floor",
     "gauss_newton_escape",
@@ -75,19 +76,40 @@ class SolverOutcome:
     timing: dict = field(default_factory=dict)  # seconds: where the solver's time went (see the solvers)
 
 
+def _rj(residuals, flat, like):
+    unravel = jax.flatten_util.ravel_pytree(like)[1]
+    basis = jnp.eye(flat.size, dtype=flat.dtype)
+    g = lambda v: residuals(unravel(v))  # noqa: E731
+    r, J = jax.vmap(lambda t: jax.jvp(g, (flat,), (t,)), out_axes=(None, 0))(basis)
+    return r, J.T
+
+
+# One compilation per structure: residual functions that are equinox Modules (fit's stage
+# residuals) and equal up to their arrays share this program (fit's windows, its velocity
+# refits, its scans and escapes). A plain function gets a program of its own.
+_SHARED_RJ = eqx.filter_jit(_rj)
+
+
 def residuals_and_jacobian(residuals: Callable, y0: dict):
-    """``rj(flat) -> (r, J)`` (jitted) and the ravel/unravel pair of ``y0``: the residuals and
-    their Jacobian by forward mode, one JVP per parameter sharing one primal rollout."""
+    """``rj(flat) -> (r, J)`` (compiled) and the ravel/unravel pair of ``y0``: the residuals and
+    their Jacobian by forward mode, one JVP per parameter sharing one primal rollout.
+
+    When ``residuals`` is an equinox Module the compilation is shared with every equal one
+    (same static fields, same array shapes: :class:`jaxmpm.identify.residuals.Residuals`)."""
     flat0, unravel = jax.flatten_util.ravel_pytree(y0)
+    program = _SHARED_RJ if isinstance(residuals, eqx.Module) else eqx.filter_jit(_rj)
+    like = jax.tree_util.tree_map(jnp.asarray, y0)
+    return (lambda flat: program(residuals, flat, like)), flat0, unravel
 
-    @jax.jit
-    def rj(flat):
-        basis = jnp.eye(flat.size, dtype=flat.dtype)
-        g = lambda v: residuals(unravel(v))  # noqa: E731
-        r, J = jax.vmap(lambda t: jax.jvp(g, (flat,), (t,)), out_axes=(None, 0))(basis)
-        return r, J.T
 
-    return rj, flat0, unravel
+def loss_function(residuals: Callable, y0: dict, rj=None):
+    """``loss(flat) -> sum(r**2)`` by the residual-and-Jacobian program ``rj`` (default
+    :func:`residuals_and_jacobian`'s): no compilation of its own, at the cost of the JVPs in
+    every call. For the few losses a stage needs (a scan before it, line searches): measured
+    on ``jaxmpm demo --video --quick``, a loss program of its own took 14 s to compile, its
+    seven scan points 1 s to run, and the same points by ``rj`` 2.7 s."""
+    rj = rj or residuals_and_jacobian(residuals, y0)[0]
+    return lambda flat: jnp.sum(rj(flat)[0] ** 2)
 
 
 #: Step lengths tried along the Gauss–Newton direction when the trust region has collapsed.
@@ -332,7 +354,7 @@ def levenberg_marquardt(
     if jacobian is None:
         rj, flat0, unravel = residuals_and_jacobian(residuals, y0)
         dtype = flat0.dtype
-        loss_of = jax.jit(lambda v: jnp.sum(residuals(unravel(v)) ** 2))  # compiled only if an escape needs it
+        loss_of = loss_function(residuals, y0, rj)
         result = lambda v: unravel(jnp.asarray(v, dtype))  # noqa: E731
     else:
         flat0, dtype = np.asarray(y0, np.float64), jnp.result_type(float)
