@@ -39,8 +39,9 @@ def _simulate(tmp_path: Path, cache: str) -> tuple[set[str], str]:
 def test_the_command_line_writes_its_programs_to_the_cache_and_reads_them_back(tmp_path):
     cache, hit = str(tmp_path / "cache"), "Persistent compilation cache hit"
     written, log = _simulate(tmp_path, cache)
-    assert written and hit not in log
+    first_hits = log.count(hit)  # a run may load what it wrote itself (a program compiled twice)
+    assert written
     again, log = _simulate(tmp_path, cache)
-    assert again == written and hit in log  # the second run loaded the programs and wrote none
+    assert again == written and log.count(hit) >= len(written) > first_hits  # loaded every program, wrote none
     nothing, log = _simulate(tmp_path, "off")  # turned off: no folder named "off", nothing read
     assert nothing == set() and hit not in log and not Path("off").exists()

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import ObservationError, SimulationError
 from ..fit_report import format_value
+from ..identify.residuals import frames_needed
 from ..render import tile_views
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
@@ -463,26 +464,28 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
     """Silhouettes ``(V, T, H, W)`` uint8 of a rollout with ``params`` at the observed times
     (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's).
 
-    An unhealthy rollout (:func:`jaxmpm.step.run_frames` raises) is repeated with dt halved,
+    The rollout is :func:`jaxmpm.step.forward`'s (the compilation the fit's contact detection
+    made). An unhealthy one (:func:`jaxmpm.step.health_message`) is repeated with dt halved,
     up to :data:`EVALUATION_HALVINGS` times, and a line saying so is appended to ``notes``: a
     fit's health checks ran at points a float32 round trip away from its result, and a rollout
     near an instability can fall either side (measured: a Newtonian fit on jittered masks whose
     result, re-simulated, reached CFL 1.16 in the last frame)."""
     from ..render import render_views
-    from ..step import run_frames
+    from ..step import forward, health_message
 
     model = scene.model if substeps is None else scene.model.with_substeps(int(substeps))
+    frames = frames_needed(model, np.asarray(observation.times, float))
     for halvings in range(EVALUATION_HALVINGS + 1):
-        try:
-            traj = run_frames(model, params)
+        traj = forward(model, params, frames)
+        why = health_message(model, traj)
+        if why is None:
             break
-        except SimulationError as e:
-            if halvings == EVALUATION_HALVINGS:
-                raise
-            if notes is not None:
-                notes.append(f"the evaluation rollout at {model.substeps} substeps per frame was unhealthy ({e}); "
-                             f"evaluated at {2 * model.substeps}")
-            model = model.with_substeps(2 * model.substeps)
+        if halvings == EVALUATION_HALVINGS:
+            raise SimulationError(why)
+        if notes is not None:
+            notes.append(f"the evaluation rollout at {model.substeps} substeps per frame was unhealthy ({why}); "
+                         f"evaluated at {2 * model.substeps}")
+        model = model.with_substeps(2 * model.substeps)
     idx = np.round(np.asarray(observation.times) / model.frame_dt).astype(int)
     x = np.asarray(traj.x)[idx]
     return render_views(x, _cameras(observation), RENDERER, spacing=float(np.cbrt(np.asarray(model.bodies[0].vol0)[0])))["masks"]
