@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, grid_strides, offset_terms, stencil_offsets
+from .state import Grid, Stencil, grid_strides, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):
@@ -674,32 +674,34 @@ def _bit(bits, o: int):
 
 
 class NodeSample(eqx.Module):
-    """One stencil or cell-corner node of every particle, as a collider's field sees it.
+    """The ``K`` stencil or cell-corner nodes of every particle, as a collider's field sees
+    them (stacked node-major: one whole-array operation treats every node).
 
     Attributes:
-        weight: the node's interpolation weight for the particle, 0 where the node is not
-            affine, ``(N,)``.
-        affine: whether the node is affine, ``(N,)`` bool.
-        node_sd: the node's signed distance (``+`` side), metres, ``(N,)``.
-        normal: the node's unit ``+`` normal (zero where not affine), ``(N, D)``.
-        offset: ``x_node - x_p`` in the frame of ``normal``, metres, ``(N, D)``.
+        weight: the nodes' interpolation weights for the particle, 0 where a node is not
+            affine, ``(K, N)``.
+        affine: whether each node is affine, ``(K, N)`` bool.
+        node_sd: the nodes' signed distances (``+`` side), metres, ``(K, N)``.
+        normal: the nodes' unit ``+`` normals (zero where not affine), ``(K, N, D)``.
+        offset: ``x_node - x_p`` in the frame of ``normal``, metres, ``(K, N, D)``.
     """
 
-    weight: Float[Array, " N"]
-    affine: Bool[Array, " N"]
-    node_sd: Float[Array, " N"]
-    normal: Float[Array, "N D"]
-    offset: Float[Array, "N D"]
+    weight: Float[Array, "K N"]
+    affine: Bool[Array, "K N"]
+    node_sd: Float[Array, "K N"]
+    normal: Float[Array, "K N D"]
+    offset: Float[Array, "K N D"]
 
 
 def _node_sample(weight, row, offset) -> NodeSample:
-    """A :class:`NodeSample` from the node's packed field row ``[side * distance, normal]``."""
-    nrm = row[:, 1:]
+    """A :class:`NodeSample` from the nodes' packed field rows ``[side * distance, normal]``
+    (``(K, N, 1 + D)``)."""
+    nrm = row[..., 1:]
     affine = row_dot(nrm, nrm) > 0.5
-    return NodeSample(jnp.where(affine, weight, 0.0), affine, row[:, 0], nrm, offset)
+    return NodeSample(jnp.where(affine, weight, 0.0), affine, row[..., 0], nrm, offset)
 
 
-def surface_estimate(nodes: list[NodeSample], dx: float):
+def surface_estimate(nodes: NodeSample, dx: float):
     """The particle's signed distance and normal (``+`` side) from the affine nodes around it.
 
     Each affine node's signed distance is carried to the particle along its normal,
@@ -708,7 +710,7 @@ def surface_estimate(nodes: list[NodeSample], dx: float):
     *opposed* (:data:`OPPOSED_COS`) to that of the reference node are left out. The
     reference is the node carrying the smallest value ``>= 0`` (the nearest face the particle
     is in front of) or, where every value is negative (penetrated), the largest (the face it
-    penetrated least deeply). Beside a solid thinner than the stencil the nodes past it
+    penetrated least deeply); of equals, the first node. Beside a solid thinner than the stencil the nodes past it
     belong to its far face, whose plane the particle lies behind (their carried value is
     minus the particle's distance through the solid): averaging them in gave a wrong side, a
     normal near zero and a penetration the particle did not have. In a crease, whose two
@@ -720,29 +722,23 @@ def surface_estimate(nodes: list[NodeSample], dx: float):
         ``phi (N,)`` (``+2 dx`` where no node is affine), ``normal (N, D)`` (``+`` side),
         whether some node is affine ``(N,)`` bool.
     """
-    carried = [s.node_sd - row_dot(s.normal, s.offset) for s in nodes]
-    best = jnp.full_like(carried[0], -jnp.inf)
-    ref = jnp.zeros_like(nodes[0].normal)
-    for s, c in zip(nodes, carried):
-        # rank: the nearest face in front of the particle (smallest c >= 0), else the one
-        # penetrated least deeply (largest c < 0)
-        key = jnp.where(c >= 0, 100.0 * dx - c, c)  # |c| < 5 dx: every c >= 0 ranks first
-        better = s.affine & (key > best)
-        best = jnp.where(better, key, best)
-        ref = jnp.where(better[:, None], s.normal, ref)
-    sw = jnp.zeros_like(carried[0])
-    sphi = jnp.zeros_like(carried[0])
-    snrm = jnp.zeros_like(ref)
-    for s, c in zip(nodes, carried):
-        w = jnp.where(row_dot(s.normal, ref) >= OPPOSED_COS, s.weight, 0.0)
-        sw = sw + w
-        sphi = sphi + w * c
-        snrm = snrm + w[:, None] * s.normal
+    carried = nodes.node_sd - row_dot(nodes.normal, nodes.offset)  # (K, N)
+    # rank: the nearest face in front of the particle (smallest c >= 0), else the one
+    # penetrated least deeply (largest c < 0)
+    key = jnp.where(carried >= 0, 100.0 * dx - carried, carried)  # |c| < 5 dx: every c >= 0 ranks first
+    key = jnp.where(nodes.affine & ~jnp.isnan(key), key, -jnp.inf)
+    first = jnp.argmax(key, axis=0)  # the first of the best
+    ref = jnp.take_along_axis(nodes.normal, first[None, :, None], axis=0)[0]
+    ref = jnp.where(jnp.any(nodes.affine, axis=0)[:, None], ref, 0.0)
+    w = jnp.where(row_dot(nodes.normal, ref[None]) >= OPPOSED_COS, nodes.weight, 0.0)
+    sw = jnp.sum(w, axis=0)
+    sphi = jnp.sum(w * carried, axis=0)
+    snrm = jnp.sum(w[..., None] * nodes.normal, axis=0)
     near = sw > 0
     return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx), _safe_normalize(snrm), near
 
 
-def side_bits(nodes: list[NodeSample], phi, normal):
+def side_bits(nodes: NodeSample, phi, normal):
     """Per particle, bit ``o`` (stencil node ``o``) set where the node is affine on the ``+``
     side, on the ``-`` side, and where it is an *opposed* node (its normal opposed to the
     particle's, :data:`OPPOSED_COS`) lying behind / in front of the particle's surface (the
@@ -753,13 +749,13 @@ def side_bits(nodes: list[NodeSample], phi, normal):
     plate's outside like the nodes above, and only the surface the particle is near tells
     them apart.
     """
-    bits = [jnp.zeros(phi.shape, jnp.int32) for _ in range(4)]
-    for o, s in enumerate(nodes):
-        opposed = s.affine & (row_dot(s.normal, normal) < OPPOSED_COS)
-        ahead = phi + row_dot(normal, s.offset)
-        flags = (s.affine & (s.node_sd >= 0), s.affine & (s.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
-        bits = [b | jnp.left_shift(f.astype(jnp.int32), o) for b, f in zip(bits, flags)]
-    return tuple(bits)
+    affine = nodes.affine
+    opposed = affine & (row_dot(nodes.normal, normal[None]) < OPPOSED_COS)
+    ahead = phi[None] + row_dot(normal[None], nodes.offset)
+    flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
+    shifts = jnp.arange(affine.shape[0], dtype=jnp.int32)[:, None]
+    # distinct powers of two: their sum is their bitwise or
+    return tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0) for f in flags)
 
 
 def _corner_lookup(grid: Grid, table, x):
@@ -771,19 +767,17 @@ def _corner_lookup(grid: Grid, table, x):
         whether some corner is affine (``phi`` is meaningful), ``(N,)`` bool.
     """
     dtype = x.dtype
-    dim = x.shape[1]
     xi = (x - jnp.asarray(grid.origin, dtype)) / grid.dx
     cell = jnp.clip(jnp.floor(xi), 0, jnp.asarray(grid.shape, dtype) - 2)
     f = xi - cell
     base = cell.astype(jnp.int32)
-    strides = grid_strides(grid.shape)
-    nodes = []
-    for corner in _corners(dim):
-        idx = sum((base[:, d] + k) * st for d, (k, st) in enumerate(zip(corner, strides)))
-        w = jnp.prod(jnp.stack([f[:, d] if k else 1.0 - f[:, d] for d, k in enumerate(corner)], -1), -1)
-        offset = grid.dx * jnp.stack([k - f[:, d] for d, k in enumerate(corner)], -1)
-        nodes.append(_node_sample(w, table[idx], offset))
-    return materialize(surface_estimate(nodes, grid.dx), jnp.isfinite(x[0, 0]))
+    corners = np.asarray(_corners(x.shape[1]), np.int32)  # (K, D)
+    strides = np.asarray(grid_strides(grid.shape), np.int32)
+    idx = sum(base[:, d] * int(st) for d, st in enumerate(strides))[None, :] + jnp.asarray(corners @ strides)[:, None]
+    on = jnp.asarray(corners, bool)[:, None, :]
+    w = jnp.prod(jnp.where(on, f[None], 1.0 - f[None]), axis=-1)
+    offset = grid.dx * (jnp.asarray(corners, dtype)[:, None, :] - f[None])
+    return materialize(surface_estimate(_node_sample(w, table[idx], offset), grid.dx), jnp.isfinite(x[0, 0]))
 
 
 def _corners(dim: int):
@@ -796,11 +790,8 @@ def _stencil_lookup(grid: Grid, st: Stencil, x, table):
     (from its cell's corners, :func:`_corner_lookup`, as for every static field). Used for thin
     fields, whose opposed nodes are told apart by the particle's surface."""
     phi, nrm, near = _corner_lookup(grid, table, x)
-    nodes = []
-    for offset in stencil_offsets(grid.dim):
-        index, weight, dpos = offset_terms(grid, st, offset)
-        nodes.append(_node_sample(weight, table[index], grid.dx * dpos))
-    return side_bits(nodes, phi, nrm), phi, nrm, near
+    index, weight, dpos = stencil_terms(grid, st)
+    return side_bits(_node_sample(weight, table[index], grid.dx * dpos), phi, nrm), phi, nrm, near
 
 
 def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, collider, time):
@@ -814,13 +805,12 @@ def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, col
     c, rot = rigid_transform(collider, time, dtype)
     pivot = jnp.asarray(collider.pivot, dtype)
     Xp = pivot + rows_times(x - c, rot)
-    nodes = []
-    for offset in stencil_offsets(grid.dim):
-        _, weight, dpos = offset_terms(grid, st, offset)
-        Xi = pivot + rows_times(x + dx * dpos - c, rot)  # the world node, in the rest frame
-        row, Xj = _lattice_lookup(field, table, Xi)
-        sample = _node_sample(weight, row, Xi - Xp)
-        nodes.append(eqx.tree_at(lambda s: s.node_sd, sample, row[:, 0] + row_dot(sample.normal, Xi - Xj)))
+    _, weight, dpos = stencil_terms(grid, st)
+    Xi = pivot + rows_times(x[None] + dx * dpos - c, rot)  # the world nodes, in the rest frame (K, N, D)
+    row, Xj = _lattice_lookup(field, table, Xi.reshape(-1, Xi.shape[-1]))
+    row, Xj = row.reshape(Xi.shape[:2] + row.shape[-1:]), Xj.reshape(Xi.shape)
+    sample = _node_sample(weight, row, Xi - Xp[None])
+    nodes = eqx.tree_at(lambda s: s.node_sd, sample, row[..., 0] + row_dot(sample.normal, Xi - Xj))
     phi, nrm, near = surface_estimate(nodes, dx)
     return side_bits(nodes, phi, nrm), phi, rows_times(nrm, rot.T), near
 
