@@ -130,8 +130,8 @@ class FitConfig:
             time, each at its starting value × 10^offset, the others at the best so far;
             the stage starts from the point with the lowest stage loss (:func:`scan_start`).
             Silhouette losses have plateaus where Levenberg–Marquardt stalls a decade or more
-            from the answer; a coarse look across them costs one rollout per point. Default
-            None (no scan).
+            from the answer; a coarse look across them costs one evaluation of the stage's
+            residuals and Jacobian per point. Default None (no scan).
     """
 
     method: str = "lm"
@@ -643,9 +643,9 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
     ``y0[name] + offset`` for every offset, the others held at the best point so far, and
     kept where the loss is lowest.
 
-    Unhealthy points (NaN loss) are skipped. Costs ``len(names) × len(offsets)`` rollouts of
-    the stage's window (compiled once with the stage's escapes,
-    :func:`jaxmpm.identify.solvers.loss_function`).
+    Unhealthy points (NaN loss) are skipped. Costs ``len(names) × len(offsets)`` evaluations
+    of the stage's residual-and-Jacobian program (the one its solver uses: nothing new is
+    compiled, :func:`jaxmpm.identify.solvers.loss_function`).
 
     Returns:
         ``(y, scanned)``: the best point (optimisation space) and a record ``{"points",

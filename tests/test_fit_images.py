@@ -41,6 +41,49 @@ def test_silhouette_and_rgb_objectives(observed):
     assert float(loss(start.params)) == float(loss(start.params))  # the fixed pixel batch is deterministic
 
 
+def _first(obs: Observation, k: int) -> Observation:
+    """The observation cut to its first ``k`` times."""
+    return Observation(times=obs.times[:k], masks=obs.masks[:, :k], images=obs.images[:, :k],
+                       intrinsics=obs.intrinsics, cam_to_world=obs.cam_to_world)
+
+
+def test_a_window_is_the_observation_cut_to_it_and_shares_one_compilation(observed):
+    """An objective over a window (``until``) gives the loss of the observation cut to that
+    window (same pixels, same scales: only its frames are simulated and rendered), has the
+    same residual length as the whole observation's, and a stage's compiled
+    residual-and-Jacobian program serves every window without compiling again."""
+    import jax.monitoring
+
+    from jaxmpm.fit import StageResiduals
+    from jaxmpm.identify.parameters import to_unconstrained
+    from jaxmpm.identify.solvers import residuals_and_jacobian
+
+    scene = load_scene(_spec(50.0))
+    options = dict(weights={"silhouette": 1.0, "rgb": 0.5}, num_pixels=48)
+    whole = build_objective(scene.model, observed, **options)
+    for k in (2, 3):
+        window = build_objective(scene.model, observed, until=float(observed.times[k - 1]), **options)
+        cut = build_objective(scene.model, _first(observed, k), **options)
+        assert window.frames == cut.frames == k and window.length == whole.length == len(observed.times)
+        assert window.count == cut.count and window.residuals(scene.params).shape == whole.residuals(scene.params).shape
+        np.testing.assert_allclose(float(window.loss(scene.params)), float(cut.loss(scene.params)), rtol=1e-5)
+
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: compiles.append(event) if event == "/jax/core/compile/backend_compile_duration" else None)
+    y = {"mu": to_unconstrained("mu", jnp.asarray(50.0))}
+    losses = []
+    for until in (float(observed.times[1]), None):
+        objective = build_objective(scene.model, observed, until=until, **options)
+        rj, flat, _ = residuals_and_jacobian(StageResiduals(objective.program, scene.params, ("mu",)), y)
+        r, J = rj(flat)
+        losses.append(float(jnp.sum(r**2)))
+        if until is not None:
+            compiled = len(compiles)
+    assert compiled > 0 and len(compiles) == compiled  # the second window compiled nothing
+    assert losses[1] > losses[0] > 0  # ... and is not the first window again
+
+
 def test_random_pixel_batches():
     """Adam's batches: n per view and frame, mostly from each view's candidate region."""
     from jaxmpm.identify.residuals import _random_pixels

@@ -84,6 +84,20 @@ def test_fit_mu_from_a_front_position_probe(truth):
 # --------------------------------------------------------------------------- tracks
 
 
+@pytest.mark.parametrize("point_ids", ["particles", None], ids=["by-id", "chamfer"])
+def test_a_tracks_window_is_the_observation_cut_to_it(truth, point_ids):
+    scene, traj = truth
+    start = _scene(mu=10.0)
+    times, x = np.asarray(traj.times), np.asarray(traj.x)
+    whole = build_objective(start.model, Observation(times=times, positions=x, point_ids=point_ids))
+    window = build_objective(start.model, Observation(times=times, positions=x, point_ids=point_ids), until=times[2])
+    cut = build_objective(start.model, Observation(times=times[:3], positions=x[:3], point_ids=point_ids))
+    assert window.frames == cut.frames == 3 and window.count == cut.count
+    assert window.residuals(start.params).shape == whole.residuals(start.params).shape
+    np.testing.assert_allclose(float(window.loss(start.params)), float(cut.loss(start.params)), rtol=1e-5)
+    assert float(window.loss(start.params)) < float(whole.loss(start.params))
+
+
 def test_chamfer_matches_brute_force():
     rng = np.random.default_rng(0)
     sim = rng.normal(size=(37, 3))

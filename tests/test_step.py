@@ -76,6 +76,37 @@ def test_single_step_is_pure_and_advances_time(dim):
     assert float(a.time) == pytest.approx(scene.model.dt)
 
 
+@pytest.mark.x64
+def test_a_rollout_of_its_first_active_frames_holds_the_rest_and_differentiates_like_the_short_one():
+    """``simulate(frames=5, active=k)`` (k traced) equals the k-frame rollout on its first k
+    frames and holds the last state after them; its gradient and JVP through a loss of the
+    first k frames equal the short rollout's."""
+    spec = block_spec(2, {"model": "newtonian", "mu": 10.0, "kappa": 1e4}, frames=5, substeps=6,
+                      floor={"point": [0, 0.28], "normal": [0, 1], "contact": "slip"})
+    scene = load_scene(spec, dtype=jnp.float64)
+    long = jax.jit(lambda p, k: simulate(scene.model, p, checkpoint="nested", frames=5, active=k))
+    for k in (2, 4, 5):
+        short = simulate(scene.model, scene.params, frames=k)
+        held = long(scene.params, k)
+        np.testing.assert_array_equal(held.x[:k], short.x)
+        np.testing.assert_array_equal(held.x[k:], np.broadcast_to(short.x[-1], held.x[k:].shape))
+        np.testing.assert_array_equal(held.final.x, short.final.x)
+    assert float(jnp.max(jnp.abs(long(scene.params, 5).x[-1] - long(scene.params, 4).x[-1]))) > 0
+
+    from jaxmpm.identify.parameters import set_param
+
+    def head_loss(mu, rollout):
+        return jnp.mean(rollout(set_param(scene.params, ("bodies", 0, "mu"), mu)).x[:3, :, 1] ** 2)
+
+    short = lambda p: simulate(scene.model, p, frames=3)  # noqa: E731
+    mu = jnp.asarray(10.0)
+    g_short, g_long = (jax.grad(head_loss)(mu, r) for r in (short, lambda p: long(p, 3)))
+    t_short, t_long = (jax.jvp(lambda m: head_loss(m, r), (mu,), (jnp.ones(()),))[1] for r in (short, lambda p: long(p, 3)))
+    np.testing.assert_allclose(g_long, g_short, rtol=1e-10)
+    np.testing.assert_allclose(t_long, t_short, rtol=1e-10)
+    assert abs(float(g_short)) > 0
+
+
 def _loss(model, checkpoint):
     def loss(params):
         traj = simulate(model, params, checkpoint=checkpoint)

@@ -734,6 +734,7 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
     n = int(min(num_pixels, H * W))
     if margin is None:
         margin = max(2, int(round(0.05 * max(H, W))))
+
     def candidates(frames):
         cand = _candidates(masks[:, frames], margin) if masks is not None else [np.arange(H * W)] * V
         return [c if len(c) else np.arange(H * W) for c in cand]
