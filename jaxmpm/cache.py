@@ -3,8 +3,9 @@ the same programs (the same scene layout, the same stage of a fit) load them ins
 compiling again.
 
 Compilation dominates small runs on a CPU: for ``jaxmpm demo --video --quick`` (281
-particles) XLA spends ~30 s on each residual-and-Jacobian program and ~15 s on a forward
-rollout, which then run in 0.1–0.5 s. JAX's own cache (``jax_compilation_cache_dir``) keeps
+particles) XLA spent ~30 s on the fit's residual-and-Jacobian program and ~15 s on a forward
+rollout, which then ran in 0.1–0.5 s (docs/benchmarks.md; about half that since the step's
+size was halved). JAX's own cache (``jax_compilation_cache_dir``) keeps
 programs that took more than a second to compile. The command line turns it on
 (:func:`enable_compilation_cache`); a library user calls that function once, before any
 compilation.

@@ -17,7 +17,7 @@ import tempfile
 import jax
 import pytest
 
-from jaxmpm.cache import CACHE_ENV, enable_compilation_cache
+from jaxmpm.cache import CACHE_ENV
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 
@@ -25,7 +25,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 def pytest_configure(config):
     if not hasattr(config, "workerinput"):  # the controller (or a run without xdist): this run's folder
         config._jaxmpm_cache = os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix="jaxmpm-test-xla-")
-    enable_compilation_cache(os.environ[CACHE_ENV])
+    jax.config.update("jax_compilation_cache_dir", os.environ[CACHE_ENV])  # this run's, whatever JAX's env says
     config.addinivalue_line("markers", "x64: run this test with float64 enabled (jax.enable_x64), scoped to the test")
     # without x64 a float64 request silently gives float32: make it an error, so a test that
     # needs float64 and lacks the marker fails instead of passing on weaker arithmetic
