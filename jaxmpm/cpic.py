@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, grid_strides, stencil_offsets, stencil_terms
+from .state import Grid, Stencil, grid_strides, node_indices, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):
@@ -705,18 +705,18 @@ def surface_estimate(nodes: NodeSample, dx: float):
     """The particle's signed distance and normal (``+`` side) from the affine nodes around it.
 
     Each affine node's signed distance is carried to the particle along its normal,
-    ``s_i - N_i·(x_i - x_p)`` (exact for a planar face) and averaged with the nodes' weights;
-    the normal is the normalised weighted sum of the nodes' normals. Nodes whose normal is
-    *opposed* (:data:`OPPOSED_COS`) to that of the reference node are left out. The
-    reference is the node carrying the smallest value ``>= 0`` (the nearest face the particle
-    is in front of) or, where every value is negative (penetrated), the largest (the face it
-    penetrated least deeply); of equals, the first node. Beside a solid thinner than the stencil the nodes past it
-    belong to its far face, whose plane the particle lies behind (their carried value is
+    ``s_i - N_i·(x_i - x_p)`` (exact for a planar face) and averaged with the nodes' weights; the
+    normal is the normalised weighted sum of the nodes' normals. Nodes whose normal is *opposed*
+    (:data:`OPPOSED_COS`) to that of the reference node are left out. The reference is the node
+    carrying the smallest value ``>= 0`` (the nearest face the particle is in front of) or,
+    where every value is negative (penetrated), the largest (the face it penetrated least
+    deeply); of equals, the first node. Beside a solid thinner than the stencil the nodes past
+    it belong to its far face, whose plane the particle lies behind (their carried value is
     minus the particle's distance through the solid): averaging them in gave a wrong side, a
-    normal near zero and a penetration the particle did not have. In a crease, whose two
-    walls face each other, both carry values ``>= 0`` and the nearer wall is the one the
-    particle may cross (ranking the largest first took the farther wall: sand went 0.29 dx
-    into the scaled bunny instead of 0.17 dx). Without opposed nodes nothing is left out.
+    normal near zero and a penetration the particle did not have. In a crease, whose two walls
+    face each other, both carry values ``>= 0`` and the nearer wall is the one the particle may
+    cross (ranking the largest first took the farther wall: sand went 0.29 dx into the scaled
+    bunny instead of 0.17 dx). Without opposed nodes nothing is left out.
 
     Returns:
         ``phi (N,)`` (``+2 dx`` where no node is affine), ``normal (N, D)`` (``+`` side),
@@ -772,8 +772,7 @@ def _corner_lookup(grid: Grid, table, x):
     f = xi - cell
     base = cell.astype(jnp.int32)
     corners = np.asarray(_corners(x.shape[1]), np.int32)  # (K, D)
-    strides = np.asarray(grid_strides(grid.shape), np.int32)
-    idx = sum(base[:, d] * int(st) for d, st in enumerate(strides))[None, :] + jnp.asarray(corners @ strides)[:, None]
+    idx = node_indices(grid.shape, base, corners)
     on = jnp.asarray(corners, bool)[:, None, :]
     w = jnp.prod(jnp.where(on, f[None], 1.0 - f[None]), axis=-1)
     offset = grid.dx * (jnp.asarray(corners, dtype)[:, None, :] - f[None])

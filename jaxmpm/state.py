@@ -196,6 +196,14 @@ def offset_terms(grid: Grid, st: Stencil, offset: tuple[int, ...], with_dpos: bo
     return index, weight, dpos
 
 
+def node_indices(shape: tuple[int, ...], base: Int[Array, "N D"], offsets: np.ndarray) -> Int[Array, "K N"]:
+    """Flat (C-order) index in a grid of ``shape`` of every node ``base + offsets[k]``
+    (``offsets (K, D)``, constant integers)."""
+    strides = np.asarray(grid_strides(shape), np.int32)
+    flat = sum(base[:, d] * int(s) for d, s in enumerate(strides))  # (N,)
+    return flat[None, :] + jnp.asarray(np.asarray(offsets, np.int32) @ strides)[:, None]
+
+
 def stencil_terms(grid: Grid, st: Stencil):
     """:func:`offset_terms` of all 3^D offsets at once, stacked offset-major (the order of
     :func:`stencil_offsets`): flat node index ``(K, N)``, weight ``(K, N)`` and
@@ -203,9 +211,7 @@ def stencil_terms(grid: Grid, st: Stencil):
     per-offset ones: for code that treats every node alike (the CPIC side tests)."""
     dim = st.dim
     offsets = np.asarray(stencil_offsets(dim), np.int32)  # (K, D)
-    strides = grid_strides(grid.shape)
-    base = sum(st.base[:, d] * s for d, s in enumerate(strides))  # (N,)
-    index = base[None, :] + jnp.asarray(offsets @ np.asarray(strides, np.int32))[:, None]
+    index = node_indices(grid.shape, st.base, offsets)
     weight = functools.reduce(operator.mul, [jnp.stack([st.w[k][d] for k in range(3)])[offsets[:, d]]
                                              for d in range(dim)])
     fx = jnp.stack(st.fx, axis=-1)  # (N, D)
