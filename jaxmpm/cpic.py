@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, grid_strides, node_indices, stencil_offsets, stencil_terms
+from .state import Grid, Stencil, grid_strides, node_indices, offset_weight, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):
@@ -660,17 +660,20 @@ class Contact(eqx.Module):
     any_incompatible: Int[Array, " N"]
     v_collider: tuple[Float[Array, "N D"], ...]
 
-    def incompatible_at(self, o: int) -> Bool[Array, " N"]:
-        """Whether stencil node ``o`` is incompatible with the particle (for any collider)."""
-        return _bit(self.any_incompatible, o)
+    def incompatible_mask(self) -> Bool[Array, "K N"]:
+        """Whether each stencil node is incompatible with the particle (for any collider),
+        ``(3^D, N)`` in the order of :func:`jaxmpm.state.stencil_offsets`."""
+        return bit_mask(self.any_incompatible, 3 ** self.normal[0].shape[-1])
 
-    def owned_at(self, o: int, c: int) -> Bool[Array, " N"]:
-        """Whether stencil node ``o`` is an incompatible node attributed to collider ``c``."""
-        return _bit(self.owned[c], o)
+    def owned_mask(self, c: int) -> Bool[Array, "K N"]:
+        """Whether each stencil node is an incompatible node attributed to collider ``c``, ``(3^D, N)``."""
+        return bit_mask(self.owned[c], 3 ** self.normal[c].shape[-1])
 
 
-def _bit(bits, o: int):
-    return jnp.bitwise_and(jnp.right_shift(bits, o), 1) > 0
+def bit_mask(bits: Int[Array, " N"], count: int) -> Bool[Array, "K N"]:
+    """Bits ``0 .. count - 1`` of every ``bits[n]``, ``(count, N)``."""
+    shifts = jnp.arange(count, dtype=bits.dtype)[:, None]
+    return jnp.bitwise_and(jnp.right_shift(bits[None, :], shifts), 1) > 0
 
 
 class NodeSample(eqx.Module):
@@ -987,13 +990,11 @@ def incompatible_moments(st: Stencil, contact: Contact):
     weights, moments = [], []
     dim = st.dim
     for c in range(len(contact.index)):
+        owned = contact.owned_mask(c)
         w_sum = jnp.zeros_like(st.fx[0])
         m_sum = [jnp.zeros_like(st.fx[0]) for _ in range(dim)]
         for o, offset in enumerate(stencil_offsets(dim)):
-            w = st.w[offset[0]][0]
-            for d in range(1, dim):
-                w = w * st.w[offset[d]][d]
-            w = jnp.where(contact.owned_at(o, c), w, 0.0)
+            w = jnp.where(owned[o], offset_weight(st, offset), 0.0)
             w_sum = w_sum + w
             m_sum = [m + w * (k - f) for m, k, f in zip(m_sum, offset, st.fx)]
         weights.append(w_sum)

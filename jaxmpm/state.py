@@ -186,14 +186,9 @@ def grid_strides(shape: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(reversed(strides))
 
 
-def offset_terms(grid: Grid, st: Stencil, offset: tuple[int, ...], with_dpos: bool = True):
-    """Flat node index ``(N,)``, weight ``(N,)`` and ``(x_i - x_p)/dx`` ``(N, D)`` of one offset
-    (``dpos`` is ``None`` when ``with_dpos`` is False)."""
-    strides = grid_strides(grid.shape)
-    index = sum((st.base[:, d] + o) * s for d, (o, s) in enumerate(zip(offset, strides)))
-    weight = functools.reduce(operator.mul, [st.w[o][d] for d, o in enumerate(offset)])
-    dpos = jnp.stack([o - f for o, f in zip(offset, st.fx)], axis=-1) if with_dpos else None
-    return index, weight, dpos
+def offset_weight(st: Stencil, offset: tuple[int, ...]) -> Float[Array, " N"]:
+    """Weight ``(N,)`` of stencil node ``offset``: the product of its per-axis weights."""
+    return functools.reduce(operator.mul, [st.w[o][d] for d, o in enumerate(offset)])
 
 
 def node_indices(shape: tuple[int, ...], base: Int[Array, "N D"], offsets: np.ndarray) -> Int[Array, "K N"]:
@@ -230,31 +225,34 @@ def stencil_terms(grid: Grid, st: Stencil):
 # width: XLA's CPU scatter-add is 4-5x slower on 3-wide rows than on 4-wide ones (measured).
 
 
-def stencil_index(grid: Grid, st: Stencil) -> Int[Array, " KN"]:
-    """Flat node index of every stencil node of every particle, ``(3^D N,)``, offset-major
-    (the order of :func:`stencil_offsets`)."""
-    return jnp.concatenate([offset_terms(grid, st, offset, with_dpos=False)[0] for offset in stencil_offsets(st.dim)])
+def stencil_index(grid: Grid, st: Stencil) -> list[Int[Array, " N"]]:
+    """Flat node index of each stencil node of every particle, one ``(N,)`` array per offset
+    (the order of :func:`stencil_offsets`): the lowest node's index plus a constant."""
+    strides = grid_strides(grid.shape)
+    flat = sum(st.base[:, d] * s for d, s in enumerate(strides))
+    return [flat + int(np.dot(offset, strides)) for offset in stencil_offsets(st.dim)]
 
 
 def _padded_width(c: int) -> int:
     return 1 << max(c - 1, 0).bit_length()
 
 
-def scatter_rows(num_nodes: int, indices: list[Int[Array, " N"]], rows: list[Float[Array, "N C"]]) -> Float[Array, "G C"]:
-    """``sum_o zeros(G, C).at[indices[o]].add(rows[o])``: one grid buffer updated in place by
+def scatter_rows(num_nodes: int, index: list[Int[Array, " N"]], rows: list[Float[Array, "N C"]]) -> Float[Array, "G C"]:
+    """``sum_o zeros(G, C).at[index[o]].add(rows[o])``: one grid buffer updated in place by
     one scatter per stencil offset (indices in bounds, see :func:`compute_stencil`). Its
     transpose is one gather per offset, which is cheap."""
     c = rows[0].shape[-1]
     cp = _padded_width(c)
     out = jnp.zeros((num_nodes, cp), rows[0].dtype)
-    for index, block in zip(indices, rows):
-        out = out.at[index].add(jnp.pad(block, ((0, 0), (0, cp - c))), mode="promise_in_bounds")
+    for node, block in zip(index, rows):
+        out = out.at[node].add(jnp.pad(block, ((0, 0), (0, cp - c))), mode="promise_in_bounds")
     return out[:, :c]
 
 
-def gather_rows(table: Float[Array, "G C"], index: Int[Array, " KN"], count: int) -> list[Float[Array, "N C"]]:
-    """``table[index]`` in one gather, split into ``count`` per-offset ``(N, C)`` blocks."""
+def gather_rows(table: Float[Array, "G C"], index: list[Int[Array, " N"]]) -> list[Float[Array, "N C"]]:
+    """``table[index[o]]`` for every offset ``o`` in one gather (of the concatenated indices),
+    split into per-offset ``(N, C)`` blocks."""
     c = table.shape[-1]
     cp = _padded_width(c)
-    rows = jnp.pad(table, ((0, 0), (0, cp - c))).at[index].get(mode="promise_in_bounds")
-    return [block[:, :c] for block in jnp.split(rows, count)]
+    rows = jnp.pad(table, ((0, 0), (0, cp - c))).at[jnp.concatenate(index)].get(mode="promise_in_bounds")
+    return [block[:, :c] for block in jnp.split(rows, len(index))]

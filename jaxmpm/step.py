@@ -35,7 +35,7 @@ from .state import (
     Stencil,
     compute_stencil,
     gather_rows,
-    offset_terms,
+    offset_weight,
     scatter_rows,
     stencil_index,
     stencil_offsets,
@@ -135,18 +135,18 @@ def p2g(
     # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
     columns = [grid.dx * affine[:, :, d] for d in range(dim)]
     base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
-    indices, rows = [], []
+    incompatible = None if contact is None else contact.incompatible_mask()
+    rows = []
     for o, offset in enumerate(stencil_offsets(dim)):
-        index, weight, _ = offset_terms(grid, st, offset, with_dpos=False)
-        if contact is not None:
-            weight = jnp.where(contact.incompatible_at(o), 0.0, weight)
+        weight = offset_weight(st, offset)
+        if incompatible is not None:
+            weight = jnp.where(incompatible[o], 0.0, weight)
         momentum = base_momentum
         for d, od in enumerate(offset):
             if od:
                 momentum = momentum + od * columns[d]
-        indices.append(index)
         rows.append(weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1))
-    packed = scatter_rows(grid.num_nodes, indices, rows)
+    packed = scatter_rows(grid.num_nodes, stencil_index(grid, st), rows)
     return packed[:, 0], packed[:, 1:]
 
 
@@ -180,8 +180,8 @@ def p2g_boundary(
         st = compute_stencil(grid, jnp.clip(xb, lo, hi))
         mass = jnp.where(inside, m_b, 0.0)
         values = mass[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
-        terms = [offset_terms(grid, st, offset, with_dpos=False) for offset in stencil_offsets(grid.dim)]
-        packed = packed + scatter_rows(grid.num_nodes, [t[0] for t in terms], [t[1][:, None] * values for t in terms])
+        rows = [offset_weight(st, offset)[:, None] * values for offset in stencil_offsets(grid.dim)]
+        packed = packed + scatter_rows(grid.num_nodes, stencil_index(grid, st), rows)
     return packed[:, 0], packed[:, 1:]
 
 
@@ -287,13 +287,14 @@ def g2p(
     """
     n, dim = st.num_particles, st.dim
     offsets = stencil_offsets(dim)
-    values = gather_rows(grid_v, stencil_index(grid, st), len(offsets))
+    values = gather_rows(grid_v, stencil_index(grid, st))
+    incompatible = None if ghost is None else ghost.contact.incompatible_mask()
     v = jnp.zeros((n, dim), grid_v.dtype)
     moments = [jnp.zeros((n, dim), grid_v.dtype) for _ in range(dim)]  # moments[d] = sum w v_o o_d
     for o, (offset, vo) in enumerate(zip(offsets, values)):
-        _, weight, _ = offset_terms(grid, st, offset, with_dpos=False)
-        if ghost is not None:
-            weight = jnp.where(ghost.contact.incompatible_at(o), 0.0, weight)
+        weight = offset_weight(st, offset)
+        if incompatible is not None:
+            weight = jnp.where(incompatible[o], 0.0, weight)
         wv = weight[:, None] * vo
         v = v + wv
         moments = [m + od * wv if od else m for m, od in zip(moments, offset)]

@@ -8,7 +8,7 @@ from scenes import block_spec
 
 from jaxmpm.model import initial_state
 from jaxmpm.scene import load_scene
-from jaxmpm.state import Grid, offset_terms
+from jaxmpm.state import Grid, stencil_terms
 from jaxmpm.step import compute_stencil, p2g, simulate, stencil_offsets, step
 
 
@@ -34,11 +34,16 @@ def test_stencil_weights_are_a_partition_of_unity(dim):
     grid = Grid(lo=(0.0,) * dim, hi=(1.0,) * dim, dx=0.1)
     x = jax.random.uniform(jax.random.PRNGKey(0), (50, dim), jnp.float64, 0.05, 0.95)
     st = compute_stencil(grid, x)
-    total = sum(offset_terms(grid, st, off)[1] for off in stencil_offsets(dim))
-    np.testing.assert_allclose(total, 1.0, atol=1e-12)
+    index, weight, dpos = stencil_terms(grid, st)
+    np.testing.assert_allclose(weight.sum(axis=0), 1.0, atol=1e-12)
     # linear completeness: the weighted node offsets reproduce the particle position
-    first = sum(offset_terms(grid, st, off)[1][:, None] * offset_terms(grid, st, off)[2] for off in stencil_offsets(dim))
-    np.testing.assert_allclose(first, 0.0, atol=1e-12)
+    np.testing.assert_allclose((weight[..., None] * dpos).sum(axis=0), 0.0, atol=1e-12)
+    # node k is base + stencil_offsets[k], weighted by the product of its per-axis weights
+    for k, offset in enumerate(stencil_offsets(dim)):
+        node = np.asarray(st.base) + np.asarray(offset)
+        np.testing.assert_array_equal(index[k], np.ravel_multi_index(tuple(node.T), grid.shape))
+        np.testing.assert_allclose(weight[k], np.prod([st.w[o][d] for d, o in enumerate(offset)], axis=0), rtol=1e-14)
+        np.testing.assert_allclose(dpos[k], np.asarray(offset) - np.stack(st.fx, axis=-1), atol=1e-14)
     for f in st.fx:
         assert bool(jnp.all((f >= 0.5) & (f < 1.5)))
 
