@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, grid_strides, node_indices, offset_weight, stencil_offsets, stencil_terms
+from .state import Grid, Stencil, flat_index, node_indices, offset_weight, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):
@@ -627,7 +627,7 @@ def _lattice_lookup(field: CollisionField, table, X):
     upper = jnp.asarray([n - 1 for n in shape], dtype)
     valid = jnp.all((jf >= 0) & (jf <= upper), axis=-1)
     ji = jnp.clip(jf, 0, upper).astype(jnp.int32)
-    flat = sum(ji[:, d] * s for d, s in enumerate(grid_strides(shape)))
+    flat = flat_index(shape, ji)
     row = jnp.where(valid[:, None], table[flat], 0.0)  # rows [T·D, N]
     return row, origin + ji.astype(dtype) * field.dx
 
@@ -858,7 +858,7 @@ def gather_contact(
         return None
     dtype = x.dtype
     n = x.shape[0]
-    base = sum(st.base[:, d] * s for d, s in enumerate(grid_strides(grid.shape)))
+    base = flat_index(grid.shape, st.base)
     new_tag = jax.lax.stop_gradient(tag)
     phis, normals, incs, owned, vcs = [], [], [], [], []
     any_inc = jnp.zeros((n,), jnp.int32)

@@ -191,12 +191,16 @@ def offset_weight(st: Stencil, offset: tuple[int, ...]) -> Float[Array, " N"]:
     return functools.reduce(operator.mul, [st.w[o][d] for d, o in enumerate(offset)])
 
 
+def flat_index(shape: tuple[int, ...], node: Int[Array, "N D"]) -> Int[Array, " N"]:
+    """Flat (C-order) index of every ``node`` in a grid of ``shape``."""
+    return sum(node[:, d] * s for d, s in enumerate(grid_strides(shape)))
+
+
 def node_indices(shape: tuple[int, ...], base: Int[Array, "N D"], offsets: np.ndarray) -> Int[Array, "K N"]:
     """Flat (C-order) index in a grid of ``shape`` of every node ``base + offsets[k]``
     (``offsets (K, D)``, constant integers)."""
     strides = np.asarray(grid_strides(shape), np.int32)
-    flat = sum(base[:, d] * int(s) for d, s in enumerate(strides))  # (N,)
-    return flat[None, :] + jnp.asarray(np.asarray(offsets, np.int32) @ strides)[:, None]
+    return flat_index(shape, base)[None, :] + jnp.asarray(np.asarray(offsets, np.int32) @ strides)[:, None]
 
 
 def stencil_terms(grid: Grid, st: Stencil):
@@ -228,9 +232,8 @@ def stencil_terms(grid: Grid, st: Stencil):
 def stencil_index(grid: Grid, st: Stencil) -> list[Int[Array, " N"]]:
     """Flat node index of each stencil node of every particle, one ``(N,)`` array per offset
     (the order of :func:`stencil_offsets`): the lowest node's index plus a constant."""
-    strides = grid_strides(grid.shape)
-    flat = sum(st.base[:, d] * s for d, s in enumerate(strides))
-    return [flat + int(np.dot(offset, strides)) for offset in stencil_offsets(st.dim)]
+    flat = flat_index(grid.shape, st.base)
+    return [flat + int(np.dot(offset, grid_strides(grid.shape))) for offset in stencil_offsets(st.dim)]
 
 
 def _padded_width(c: int) -> int:

@@ -61,12 +61,12 @@ def test_a_window_is_the_observation_cut_to_it_and_shares_one_compilation(observ
     scene = load_scene(_spec(50.0))
     options = dict(weights={"silhouette": 1.0, "rgb": 0.5}, num_pixels=48)
     whole = build_objective(scene.model, observed, **options)
-    for k in (2, 3):
-        window = build_objective(scene.model, observed, until=float(observed.times[k - 1]), **options)
-        cut = build_objective(scene.model, _first(observed, k), **options)
-        assert window.frames == cut.frames == k and window.length == whole.length == len(observed.times)
-        assert window.count == cut.count and window.residuals(scene.params).shape == whole.residuals(scene.params).shape
-        np.testing.assert_allclose(float(window.loss(scene.params)), float(cut.loss(scene.params)), rtol=1e-5)
+    k = 2
+    window = build_objective(scene.model, observed, until=float(observed.times[k - 1]), **options)
+    cut = build_objective(scene.model, _first(observed, k), **options)
+    assert window.frames == cut.frames == k and window.length == whole.length == len(observed.times)
+    assert window.count == cut.count and window.residuals(scene.params).shape == whole.residuals(scene.params).shape
+    np.testing.assert_allclose(float(window.loss(scene.params)), float(cut.loss(scene.params)), rtol=1e-5)
 
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
