@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import jaxmpm
 
 
@@ -37,6 +39,7 @@ def test_bench_step_runs_from_an_installed_package(tmp_path):
     assert ms_per_step > 0
 
 
+@pytest.mark.slow  # 60 s here; the installed-package path is the step benchmark's above
 def test_bench_grad_runs_from_an_installed_package(tmp_path):
     # `jaxmpm bench grad` without the Taichi peer beside it: the Taichi row says why, the jaxmpm
     # rows (reverse mode against its own forward, forward-mode Jacobians) are measured.

@@ -305,6 +305,7 @@ def test_demo_quick_identifies_the_droplet(tmp_path):
     assert any(p.suffix in (".mp4", ".gif") for p in tmp_path.iterdir())
 
 
+@pytest.mark.slow  # 200 s here; its stages are tested in test_reconstruct.py and test_fit_images.py
 def test_demo_video_goes_from_rendered_views_to_parameters(tmp_path, capsys):
     """``jaxmpm demo --video --quick`` with 2 LM steps per stage (the plumbing; the full run's
     accuracy is in docs/identify.md): a PAC-NeRF folder with collider masks is written and read

@@ -31,7 +31,7 @@ def _side_by_side(dx, collision="cpic"):
     }
 
 
-@pytest.mark.parametrize("dx", [0.05, 0.04])
+@pytest.mark.parametrize("dx", [0.05, pytest.param(0.04, marks=pytest.mark.slow)])  # the finer grid: -m slow
 def test_fluid_sand_and_elastic_never_enter_box_bunny_or_armadillo(dx):
     scene = load_scene(_side_by_side(dx))
     n = scene.model.num_particles

@@ -66,6 +66,7 @@ def test_sigma_check_counts_the_truth_within_three_sigma():
     assert text == "* tracks, cpic, converged: 2 parameter estimates, truth at a median of 3.5 σ (max 5); 1 within 3σ"
 
 
+@pytest.mark.slow  # the harness end to end (90 s here); its parts are tested above
 def test_ci_preset_runs_end_to_end(tmp_path):
     code = run_sysid_bench(["--preset", "ci", "--out", str(tmp_path)])
     assert code == 0

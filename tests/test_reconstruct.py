@@ -655,3 +655,33 @@ def test_a_view_level_with_the_top_carves_the_roof_and_the_bound_says_so(elevati
         assert excess >= 0.04 and 0.03 <= height <= excess and theta == pytest.approx(13.0, abs=1.0)
     else:
         assert abs(excess) < 1e-9 and height < 1e-6
+
+
+def test_the_report_pictures_show_observed_red_simulated_green_and_a_row_per_frame(tmp_path):
+    """``overlay_frames.png`` and ``iou.png`` as identify writes them (the video demo, marked
+    slow, checks them end to end): observed silhouettes red, simulated green, overlap
+    yellow; the first four views side by side; six frames evenly spaced from first to last."""
+    import imageio.v2 as imageio
+
+    from jaxmpm.plots import iou_curves
+    from jaxmpm.reconstruct.pipeline import overlay_sheet
+
+    V, T, H, W = 5, 9, 8, 10
+    observed = np.zeros((V, T, H, W), np.uint8)
+    simulated = np.zeros((V, T, H, W), np.uint8)
+    observed[..., : W // 2] = 255  # left half
+    simulated[:, :, : H // 2] = 255  # top half
+    simulated[:, ::2, H - 1, W - 1] = 255  # the bottom-right pixel marks the even frames
+    sheet = overlay_sheet(observed, simulated)
+    assert sheet.shape == (6 * H + 5 * 2, 4 * W + 3 * 2, 3) and sheet.dtype == np.uint8
+    tile = sheet[:H, :W]
+    np.testing.assert_array_equal(tile[0, 0], [255, 255, 0])  # both: yellow
+    np.testing.assert_array_equal(tile[0, W - 1], [0, 255, 0])  # simulated only
+    np.testing.assert_array_equal(tile[H - 1, 0], [255, 0, 0])  # observed only
+    np.testing.assert_array_equal(tile[H - 2, W - 1], [0, 0, 0])  # neither
+    assert np.all(sheet[H : H + 2] == 255) and np.all(sheet[:, W : W + 2] == 255)  # white lines between tiles
+    rows = [sheet[r * (H + 2) + H - 1, W - 1, 1] == 255 for r in range(6)]
+    assert rows == [True, True, False, False, True, True]  # frames 0, 2, 3, 5, 6, 8 of 0..8
+    path = iou_curves(tmp_path / "iou.png", np.linspace(0.6, 0.95, V * T).reshape(V, T), np.arange(T) / 24)
+    picture = imageio.imread(path)
+    assert picture.ndim == 3 and picture.shape[0] > 100 and picture.std() > 0

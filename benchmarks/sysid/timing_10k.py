@@ -8,10 +8,11 @@ at 8 particles per cell; 56^3 grid) and times, after compilation:
   tracks,
 * the same for silhouettes (11 views, 128 pixels per view and frame),
 
-and the compile time of each. ``--fit`` also runs the whole staged identification from
-tracks (hours on a shared 2-core CPU). Prints one JSON line.
+and the compile time of each. ``--fit`` also runs the whole staged identification (from
+tracks, or with ``--fit-from silhouettes`` from the 11 views' masks and colours, weighted as
+in the sysid benchmark's silhouette cases). Prints one JSON line.
 
-    python benchmarks/sysid/timing_10k.py [--substeps 100] [--fit | --fit-only]
+    python benchmarks/sysid/timing_10k.py [--substeps 100] [--fit | --fit-only] [--fit-from silhouettes]
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def main() -> None:
     parser.add_argument("--fit", action="store_true", help="also run the whole identification from tracks")
     parser.add_argument("--fit-only", action="store_true", help="only the forward rollout and the identification")
     parser.add_argument("--no-images", action="store_true")
+    parser.add_argument("--fit-from", choices=("tracks", "silhouettes"), default="tracks")
     args = parser.parse_args()
 
     preset = Preset(dx=args.dx, substeps=args.substeps, frames=16, views=11, res=96, pixels=128, sets=1, max_steps=25)
@@ -92,16 +94,23 @@ def main() -> None:
     tracks = Observation(times=times, positions=x, point_ids="particles")
     if not args.fit_only:
         time_rj(tracks, None, "tracks")
-    if not (args.no_images or args.fit_only):
+    images = None
+    if not args.no_images and (not args.fit_only or args.fit_from == "silhouettes"):
         rendered = render_views(x, rig(preset), make_fit_renderer("volume", scene.model))
-        images = Observation(times=times, masks=rendered["masks"], intrinsics=rendered["intrinsics"],
-                             cam_to_world=rendered["cam_to_world"])
+        images = Observation(times=times, masks=rendered["masks"], images=rendered["images"],
+                             intrinsics=rendered["intrinsics"], cam_to_world=rendered["cam_to_world"])
+    if images is not None and not args.fit_only:
         time_rj(images, {"silhouette": 1.0}, "silhouettes")
     if args.fit or args.fit_only:
         start = load_scene(scene_spec(case, preset, INITIAL_GUESS["newtonian"], velocity=(0.0, 0.0, 0.0)))
+        if args.fit_from == "tracks":
+            obs, config = tracks, FitConfig(max_steps=preset.max_steps)
+        else:  # as the sysid benchmark's silhouette cases
+            obs, config = images, FitConfig(weights={"silhouette": 1.0, "rgb": 0.1}, max_steps=preset.max_steps,
+                                             num_pixels=preset.pixels, colors=None)
+        out["fit_from"] = args.fit_from
         t0, c0 = time.perf_counter(), time.process_time()
-        result = fit(start.model, start.params, tracks, names + ["velocity"], FitConfig(max_steps=preset.max_steps),
-                     **fit_reporters(t0))
+        result = fit(start.model, start.params, obs, names + ["velocity"], config, **fit_reporters(t0))
         out["fit_s"] = time.perf_counter() - t0
         out["fit_cpu_s"] = time.process_time() - c0
         out["fit_message"] = result.message
