@@ -15,7 +15,9 @@ RGB, probes) with a solver of :mod:`jaxmpm.identify.solvers`:
 **Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone from
 the pre-contact frames, when a ``velocity`` is among the names (without per-particle tracks,
 whose contact is found in a rollout of the guess, first from the first observed interval,
-then again from the frames before the contact of that velocity); (2) the other parameters on
+then again from the frames before the contact of that velocity; from silhouettes the first
+velocity stage starts from the better of the guess and the silhouettes' free fall,
+:func:`free_fall_velocity`); (2) the other parameters on
 the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A stage whose
 rollout is unhealthy (:func:`jaxmpm.step.unhealthy`: NaN, a CFL number above ``cfl_limit``,
 energy growth, a stress-wave CFL number above 1) at its starting point, or whose
@@ -132,6 +134,11 @@ class FitConfig:
             Silhouette losses have plateaus where Levenberg–Marquardt stalls a decade or more
             from the answer; a coarse look across them costs one evaluation of the stage's
             residuals and Jacobian per point. Default None (no scan).
+        free_fall_start: from silhouettes, start the first velocity stage from the velocity
+            the masks' free fall gives (:func:`free_fall_velocity`) when its stage loss is
+            lower than the guess's: the silhouette loss is far from quadratic at a guess
+            of rest, where Levenberg–Marquardt creeps towards the answer over 15–20 trust-region
+            steps; two evaluations decide.
     """
 
     method: str = "lm"
@@ -158,6 +165,7 @@ class FitConfig:
     colors: Any = "auto"
     uncertainty: bool = True
     scan: tuple[float, ...] | None = None
+    free_fall_start: bool = True
 
     def check(self) -> None:
         """Raise JaxmpmError naming the first invalid field (called before any work)."""
@@ -448,6 +456,9 @@ def fit(
         t_guess = plan[0].until
         plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
     replans_left = MAX_VELOCITY_REFITS if t_guess is not None else 0
+    fall_velocity = None
+    if t_guess is not None and c.free_fall_start and len(vel_names) == 1:
+        fall_velocity = free_fall_velocity(model, params, observation)
 
     y_all = {n: to_unconstrained(n, jnp.asarray(v, jnp.result_type(float))) for n, v in initial.items()}
     halvings_left = c.max_dt_halvings
@@ -466,7 +477,7 @@ def fit(
             ADAM_WINDOW_STEPS if (stage_method == "adam" and stage.until is not None and si < len(plan) - 1)
             else DEFAULT_MAX_STEPS[stage_method])
         t_stage = time.perf_counter()
-        stage_scan = None
+        stage_scan = stage_fall = None
         say(f"stage {si + 1}/{len(plan)}: {', '.join(stage.names)} — {stage.label or 'all frames'} "
             f"[{stage_method}, {model.substeps} substeps/frame]")
         while True:
@@ -486,6 +497,17 @@ def fit(
                 notes.append(f"stage {si + 1}: scanned {scanned['points']} starting points ({moved}); "
                              f"loss {scanned['start_loss']:.4g} -> {scanned['best_loss']:.4g}")
                 say(notes[-1])
+            if fall_velocity is not None and snames == vel_names:
+                guess = {vel_names[0]: to_unconstrained(vel_names[0], jnp.asarray(fall_velocity, y0[vel_names[0]].dtype))}
+                y0, picked = better_start(stage_residuals, y0, guess)
+                fall_velocity = None  # the first velocity stage only: later ones start from its result
+                y_all.update(y0)
+                notes.append(f"stage {si + 1}: the silhouettes' free fall gives velocity "
+                             f"{np.round(np.asarray(picked['candidate'], float), 3).tolist()} m/s; loss at the guess "
+                             f"{picked['start_loss']:.4g}, there {picked['candidate_loss']:.4g}: started from "
+                             + ("it" if picked["taken"] else "the guess"))
+                say(notes[-1])
+                stage_fall = {**picked, "candidate": np.asarray(picked["candidate"], float).tolist()}
             outcome = _solve(stage_method, objective, stage_residuals, y0, c, steps=steps, seed=c.seed + si,
                              progress=progress, offset=total_iterations)
             if outcome.unhealthy_start:
@@ -530,6 +552,8 @@ def fit(
         }
         if stage_scan is not None:
             record["scan"] = stage_scan[1]
+        if stage_fall is not None:
+            record["free_fall_start"] = stage_fall
         records.append(record)
         say(f"stage {si + 1}: {outcome.message}")
         final_names = [n for n in snames if last_stage_of[n] == si]
@@ -671,6 +695,43 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
             if value < best_loss:
                 best, best_loss, moved[n] = trial, value, float(d)
     return best, {"points": points, "start_loss": start, "best_loss": best_loss, "moved": moved}
+
+
+def free_fall_velocity(model, params: Params, observation: Observation) -> np.ndarray | None:
+    """The initial velocity ``(3,)`` (m/s, at t = 0) of a single 3D body that the observed
+    silhouettes' free fall gives (:func:`jaxmpm.reconstruct.free_fall.free_fall`: the body's
+    triangulated centre over its leading rigid frames, ``v0`` from a parabola or, from two
+    frames, corrected by the scene's gravity), or None (no masks, not one 3D body, fewer
+    than two free-fall frames)."""
+    if observation.masks is None or model.dim != 3 or len(model.bodies) != 1:
+        return None
+    from .reconstruct.free_fall import free_fall
+    from .render import Camera
+
+    V, _, H, W = observation.masks.shape
+    cameras = Camera(np.asarray(observation.intrinsics, np.float32), np.asarray(observation.cam_to_world, np.float32),
+                     W, H)
+    times = np.asarray(observation.times, float)
+    gravity = np.asarray(params["gravity"], float)
+    fall = free_fall(observation.masks, cameras, times, model.grid.dx, gravity=gravity)
+    if fall.velocity is None or not np.all(np.isfinite(fall.velocity)):
+        return None
+    return np.asarray(fall.velocity, float) - gravity * times[0]  # the velocity of the first frame, back to t = 0
+
+
+def better_start(residuals: Callable[[dict], Any], y0: dict, candidate: dict) -> tuple[dict, dict]:
+    """``y0`` with ``candidate``'s entries when that lowers the loss ``sum(residuals(y)**2)``
+    (two evaluations of the stage's residual-and-Jacobian program; nothing is compiled for
+    it). Returns the point and a record ``{"start_loss", "candidate_loss", "taken",
+    "candidate"}`` for fit.json and the notes."""
+    loss_of = loss_function(residuals, y0)
+    flatten = lambda y: jax.flatten_util.ravel_pytree(y)[0]  # noqa: E731
+    trial = {**y0, **candidate}
+    start, there = (float(loss_of(flatten(y))) for y in (y0, trial))
+    taken = bool(np.isfinite(there) and not there >= start)
+    record = {"start_loss": start, "candidate_loss": there, "taken": taken,
+              "candidate": np.asarray(next(iter(candidate.values())))}
+    return (trial if taken else dict(y0)), record
 
 
 def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobian=None) -> dict[str, np.ndarray]:

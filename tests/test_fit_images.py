@@ -113,3 +113,34 @@ def test_fit_mu_from_silhouettes(observed):
     assert result.converged, result.message
     assert abs(np.log10(float(result.values["mu"]) / 200.0)) < 0.05, float(result.values["mu"])
     assert np.isfinite(result.std["mu"]) and result.std["mu"] > 0
+
+
+def test_the_velocity_stage_can_start_from_the_silhouettes_free_fall():
+    """``free_fall_velocity``: a block thrown at (0.5, -1, 0) m/s, falling freely in view of
+    four cameras, gives its velocity from the masks alone (of the guess only gravity is used)
+    to a starting point's accuracy: 0.07 m/s off measured (a box's silhouette centroids are
+    not its projected centre), against 1.12 for a guess of rest; ``better_start`` takes a
+    candidate only where it lowers the loss."""
+    from jaxmpm.fit import better_start, free_fall_velocity
+
+    box = dict(dx=0.05, lo=[0.35, 0.5, 0.35], hi=[0.65, 0.7, 0.65], frames=4, substeps=15)
+    truth = load_scene(block_spec(3, velocity=[0.5, -1.0, 0.0], **box))
+    traj = jax.jit(lambda p: simulate(truth.model, p))(truth.params)
+    cams = pacnerf_rig(4, radius=2.0, target=(0.5, 0.5, 0.5), fov_deg=40.0, res=64)
+    rendered = render_views(np.asarray(traj.x), cams, make_fit_renderer("volume", truth.model))
+    obs = Observation(times=np.asarray(traj.times), masks=rendered["masks"], intrinsics=rendered["intrinsics"],
+                      cam_to_world=rendered["cam_to_world"])
+    guess = load_scene(block_spec(3, **box))
+    v = free_fall_velocity(guess.model, guess.params, obs)
+    assert np.linalg.norm(v - np.array([0.5, -1.0, 0.0])) < 0.1, v
+    assert free_fall_velocity(guess.model, guess.params, Observation(times=obs.times, positions=np.asarray(traj.x))) is None
+
+    def residuals(y):
+        return jnp.stack([y["v"][0] - 1.0, y["v"][1] + 2.0])
+
+    y0 = {"v": jnp.zeros(2)}
+    better, record = better_start(residuals, y0, {"v": jnp.asarray([0.9, -1.8])})
+    assert record["taken"] and record["candidate_loss"] < record["start_loss"] == pytest.approx(5.0)
+    np.testing.assert_array_equal(better["v"], jnp.asarray([0.9, -1.8]))
+    kept, record = better_start(residuals, y0, {"v": jnp.asarray([4.0, 4.0])})
+    assert not record["taken"] and kept["v"] is y0["v"]

@@ -85,7 +85,7 @@ def test_the_unbounded_path_takes_the_steps_it_took_before_bounds():
         assert abs(float(boxed.y[n]) - float(out.y[n])) < 1e-8
 
 
-def test_the_loss_decrease_stop_shortens_a_slow_descent():
+def test_the_loss_decrease_stop_shortens_a_slow_descent(monkeypatch):
     """A large-residual fit (an exponential through scattered data) converges linearly: the
     relative decreases fall by decades over the last iterations. With ``ftol`` the fit follows
     the same path until a step lowers the loss by less than ``ftol`` and then ends after the
@@ -100,6 +100,9 @@ def test_the_loss_decrease_stop_shortens_a_slow_descent():
     def jacobian(y):
         return np.stack([t * y[1] * np.exp(y[0] * t), np.exp(y[0] * t)], axis=1)
 
+    from jaxmpm.identify import solvers
+
+    monkeypatch.setattr(solvers, "CREEP", 0.0)  # the loss-decrease stop alone (the creep stop: below)
     fit = lambda ftol: levenberg_marquardt(residuals, np.array([1.0, 0.1]), jacobian=jacobian, scaled=True,  # noqa: E731
                                            ftol=ftol, max_steps=200, rtol=1e-10, atol=1e-14)
     full, early = fit(1e-12), fit(1e-3)
@@ -109,3 +112,39 @@ def test_the_loss_decrease_stop_shortens_a_slow_descent():
     np.testing.assert_array_equal(early.losses[: first_small + 1], full.losses[: first_small + 1])
     assert early.iterations < full.iterations and len(early.losses) < len(full.losses)
     assert early.losses[-1] <= full.losses[-1] * (1.0 + 1e-3)
+
+
+def test_a_creeping_descent_ends_at_a_gauss_newton_stationary_point(monkeypatch):
+    """A large-residual fit (an exponential through scattered data) converges linearly, its
+    relative decreases falling by decades: once an accepted step lowers the loss by less than
+    ``CREEP`` where the undamped Gauss–Newton step is within ``1e-3 (1 + |y|)``, the stage ends
+    (converged, and says why) instead of creeping on. Without the creep stop the same descent
+    goes on (here for twice the iterations), lowering the loss by less than 1 % more."""
+    from jaxmpm.identify import solvers
+
+    t = np.array([0.5, 1.0, 1.5, 2.0, 2.5])
+    data = np.array([0.08, 2.92, 0.63, 5.22, 2.19])  # scattered enough that its steps are not "good"
+
+    def residuals(y):
+        return y[1] * np.exp(y[0] * t) - data
+
+    def jacobian(y):
+        return np.stack([t * y[1] * np.exp(y[0] * t), np.exp(y[0] * t)], axis=1)
+
+    def fit():
+        return levenberg_marquardt(residuals, np.array([1.0, 0.1]), jacobian=jacobian, scaled=True, max_steps=300,
+                                   rtol=1e-10, atol=1e-14)
+
+    early = fit()
+    assert early.converged and "less than 0.1 %" in early.message, early.message
+    assert early.losses[-1] > (1.0 - solvers.CREEP) * early.losses[-2]  # the last step crept ...
+    y = np.asarray(early.y)
+    delta = np.linalg.lstsq(jacobian(y), -residuals(y), rcond=None)[0]
+    assert np.all(np.abs(delta) <= 1e-3 * (1.0 + np.abs(y)))  # ... at a Gauss-Newton stationary point
+    assert np.any(np.abs(delta) > 1e-6 * (1.0 + np.abs(y)))  # (not yet at the minimum: a real cut)
+    creep = solvers.CREEP
+    monkeypatch.setattr(solvers, "CREEP", 0.0)
+    full = fit()
+    assert full.iterations > early.iterations
+    np.testing.assert_array_equal(early.losses, full.losses[: len(early.losses)])  # the same path until then
+    assert full.losses[-1] < early.losses[-1] <= full.losses[-1] * (1.0 + 10 * creep)

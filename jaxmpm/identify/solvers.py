@@ -56,6 +56,15 @@ MAX_FLOOR_CHECKS = 4
 #: half means most of the loss is irreducible (noise or misfit); a larger promise is not at
 #: the floor, and its probe would be wasted.
 FLOOR_GATE = 0.5
+#: An accepted step that lowers the loss by less than this fraction, and by less than
+#: ``TRUST_HIGH`` of what the linear model predicted, "creeps": the stage then ends if the
+#: undamped Gauss–Newton step there is within tolerance (the test the iteration cap applies),
+#: instead of creeping on to the cap. Measured: silhouette velocity stages crept for 15–20
+#: steps (accepted ones lowering the loss in its fifth digit, between rejections) to a cap that
+#: then found the Gauss–Newton step within tolerance. A descent whose steps do what the linear
+#: model predicts (a linear or zero-residual fit, however large its irreducible loss) never
+#: creeps, so its tighter Cauchy test keeps deciding.
+CREEP = 1e-3
 
 
 @dataclass
@@ -235,7 +244,8 @@ def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None,
 def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     """The stage message of :func:`levenberg_marquardt` for how it stopped: ``"converged"`` (tolerance
     test), ``"stationary"`` (rejected steps at a Gauss-Newton stationary point), ``"floor"``
-    (rejected steps at the loss's round-off floor), ``"rough"``
+    (rejected steps at the loss's round-off floor), ``"creep"`` (a step lowered the loss by less
+    than :data:`CREEP` at a Gauss-Newton stationary point), ``"rough"``
     (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
     (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
     point: converged)."""
@@ -251,6 +261,9 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
                   "still large but neither the trust region nor a line search along it lowers the loss (a rough "
                   "loss at this precision; try float64, another starting point or method='adam')"),
         "unstable": f"stalled after {iterations} iterations: the trial steps made the simulation unstable",
+        "creep": (f"converged in {iterations} iterations (the last step lowered the loss by less than "
+                  f"{100 * CREEP:g} % and the Gauss-Newton step there is within tolerance: a stationary point at this "
+                  "precision)"),
         "cap": f"did not converge within {max_steps} iterations",
         "cap-stationary": (f"converged in {iterations} iterations (the iteration limit was reached, but the "
                            "Gauss-Newton step there is within tolerance: a stationary point at this precision)"),
@@ -339,7 +352,9 @@ def levenberg_marquardt(
     ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
     round-off floor (:func:`at_round_off_floor`; this is tested at the first rejections too,
     at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the floor ends at once
-    instead of spending five more trials). A collapsed trust region away from both is
+    instead of spending five more trials); or after an accepted step that lowered the loss by
+    less than :data:`CREEP` (relative), at such a stationary point. A collapsed trust region
+    away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance.
@@ -397,7 +412,7 @@ def levenberg_marquardt(
     D = None  # the damping's diagonal scaling (None: the identity)
     losses = [f0]
     converged, stalled, succeeded, verdict, iterations = False, False, False, "rough", 0
-    escapes, rejected, floor_checks, at_floor = 0, 0, 0, False
+    escapes, rejected, floor_checks, at_floor, crept_stationary = 0, 0, 0, False, False
     at_y = None  # (r, J) unscaled at the final y when the stop checks evaluated them
     steps_s, checks_s = [], 0.0
     for iterations in range(1, max_steps + 1):
@@ -419,8 +434,11 @@ def levenberg_marquardt(
                 accept = accept and predicted < 0
             good = bool(change < TRUST_HIGH * predicted and predicted < 0)
         step_size *= (TRUST_GROW if good else 1.0) if accept else TRUST_SHRINK
+        crept = False
         if accept:
             r_prev = np.zeros_like(r_e) if r is None else r
+            # (a step the linear model predicted, "good", is the fast phase: it never creeps)
+            crept = not (first or good) and f_e > (1.0 - CREEP) * float(r_prev @ r_prev)
             succeeded = _cauchy_converged(rtol, atol, y_eval, y_eval - y, r_e, r_e - r_prev)
             if ftol is not None and not first:  # or the loss fell by less than ftol (relative)
                 succeeded = succeeded or float(r @ r) - f_e < ftol * float(r @ r)
@@ -449,6 +467,14 @@ def levenberg_marquardt(
         # from a minimum; and at the loss's numerical floor the region shrinks without the test
         # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
         # is within tolerance or promises less than the loss's round-off noise.
+        if crept:  # a creeping descent at a Gauss-Newton stationary point: the cap's test, now
+            t_check = time.perf_counter()
+            at_y = (r / scale, J / scale)
+            crept_stationary = _gauss_newton_from(*at_y, y, rtol, bounds)[1]
+            checks_s += time.perf_counter() - t_check
+            if crept_stationary:
+                converged = True
+                break
         if 0 < since_accept < MAX_REJECTED_STEPS and floor_checks < MAX_FLOOR_CHECKS:
             # a rejected trial at the loss's round-off floor: no step can be told from noise,
             # so waiting for more rejections would only spend rollouts
@@ -484,6 +510,8 @@ def levenberg_marquardt(
     unhealthy = False
     if at_floor:
         how = "floor"
+    elif crept_stationary:
+        how = "creep"
     elif stalled:  # the next trial point: is the simulation unstable there?
         unhealthy = not np.all(np.isfinite(evaluate(y_eval)[0]))
         if unhealthy:
