@@ -708,7 +708,7 @@ def free_fall_velocity(model, params: Params, observation: Observation) -> np.nd
     from .reconstruct.free_fall import free_fall
     from .render import Camera
 
-    V, _, H, W = observation.masks.shape
+    _, _, H, W = observation.masks.shape
     cameras = Camera(np.asarray(observation.intrinsics, np.float32), np.asarray(observation.cam_to_world, np.float32),
                      W, H)
     times = np.asarray(observation.times, float)

@@ -353,8 +353,8 @@ def levenberg_marquardt(
     round-off floor (:func:`at_round_off_floor`; this is tested at the first rejections too,
     at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the floor ends at once
     instead of spending five more trials); or after an accepted step that lowered the loss by
-    less than :data:`CREEP` (relative), at such a stationary point. A collapsed trust region
-    away from both is
+    less than :data:`CREEP` (relative) and than the linear model predicted, at such a
+    stationary point. A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance.
@@ -463,10 +463,6 @@ def levenberg_marquardt(
         steps_s.append(time.perf_counter() - t_step)
         if progress is not None:
             progress(offset + iterations, losses[-1])
-        # The Cauchy test also passes when the trust region has collapsed on a rough loss far
-        # from a minimum; and at the loss's numerical floor the region shrinks without the test
-        # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
-        # is within tolerance or promises less than the loss's round-off noise.
         if crept:  # a creeping descent at a Gauss-Newton stationary point: the cap's test, now
             t_check = time.perf_counter()
             at_y = (r / scale, J / scale)
@@ -475,6 +471,10 @@ def levenberg_marquardt(
             if crept_stationary:
                 converged = True
                 break
+        # The Cauchy test also passes when the trust region has collapsed on a rough loss far
+        # from a minimum; and at the loss's numerical floor the region shrinks without the test
+        # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
+        # is within tolerance or promises less than the loss's round-off noise.
         if 0 < since_accept < MAX_REJECTED_STEPS and floor_checks < MAX_FLOOR_CHECKS:
             # a rejected trial at the loss's round-off floor: no step can be told from noise,
             # so waiting for more rejections would only spend rollouts
