@@ -60,7 +60,7 @@ from .identify.parameters import (
     to_unconstrained,
     transform_of,
 )
-from .identify.residuals import Objective, Residuals, build_objective, frames_needed
+from .identify.residuals import Objective, Residuals, build_objective, frames_needed, observation_cameras
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
@@ -706,11 +706,8 @@ def free_fall_velocity(model, params: Params, observation: Observation) -> np.nd
     if observation.masks is None or model.dim != 3 or len(model.bodies) != 1:
         return None
     from .reconstruct.free_fall import free_fall
-    from .render import Camera
 
-    _, _, H, W = observation.masks.shape
-    cameras = Camera(np.asarray(observation.intrinsics, np.float32), np.asarray(observation.cam_to_world, np.float32),
-                     W, H)
+    cameras = observation_cameras(observation)
     times = np.asarray(observation.times, float)
     gravity = np.asarray(params["gravity"], float)
     fall = free_fall(observation.masks, cameras, times, model.grid.dx, gravity=gravity)

@@ -386,8 +386,9 @@ def make_fit_renderer(kind, model: Model, **options):
     return make_renderer(kind, corners, spacing=h, **options)
 
 
-def _check_cameras(obs: Observation, dtype=jnp.float32):
-    """Cameras from the observation, with clear errors for inconsistent image sizes."""
+def observation_cameras(obs: Observation, dtype=jnp.float32):
+    """The observation's cameras (one batched :class:`jaxmpm.render.Camera`), with clear errors
+    for inconsistent image sizes."""
     from ..render import Camera
 
     arr = obs.masks if obs.masks is not None else obs.images
@@ -415,7 +416,7 @@ def particle_colors(model: Model, obs: Observation, cams=None) -> np.ndarray:
         raise ObservationError("particle colours from images need 'images' in the observation")
     from ..render import mean_colors
 
-    cams = _check_cameras(obs) if cams is None else cams
+    cams = observation_cameras(obs) if cams is None else cams
     x = np.concatenate([np.asarray(b.x0, float) for b in model.bodies])
     images = np.asarray(obs.images)[:, 0].astype(float) / 255.0
     masks = None if obs.masks is None else np.asarray(obs.masks)[:, 0] > 127
@@ -722,7 +723,7 @@ def image_terms(model: Model, obs: Observation, sel: np.ndarray, dtype, *, weigh
     the layers :func:`lifted_layers`. Only the times in ``window`` (boolean over the selected
     times; default all) are rendered and fitted; the pixel batch is the same for every window."""
     _check_normalise(normalise)
-    cams = _check_cameras(obs, dtype)
+    cams = observation_cameras(obs, dtype)
     V, H, W = cams.num_views, cams.height, cams.width
     times = np.asarray(obs.times, float)[sel]
     T = len(times)

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import ObservationError, SimulationError
 from ..fit_report import format_value
-from ..identify.residuals import frames_needed
+from ..identify.residuals import frames_needed, observation_cameras
 from ..render import tile_views
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
@@ -203,15 +203,10 @@ def reconstruct_body(
             f"{dataset.folder}: the first frame's visual hull is empty: no point of the domain "
             f"{spec['domain']} is inside {obs.masks.shape[0] - tolerance} of the views' masks (check the cameras and masks)"
         )
-    rendered = render_views(points[None].astype(np.float32), _cameras(obs), RENDERER, spacing=spacing)
+    rendered = render_views(points[None].astype(np.float32), observation_cameras(obs), RENDERER, spacing=spacing)
     return points, hull, silhouette_iou(rendered["masks"][:, 0], obs.masks[:, 0])
 
 
-def _cameras(obs):
-    from ..render import Camera
-
-    V, _, H, W = obs.masks.shape
-    return Camera(np.asarray(obs.intrinsics, np.float32), np.asarray(obs.cam_to_world, np.float32), W, H)
 
 
 #: The collider hull's voxel edge, in cells (dx). Measured on the 0.2 m bunny (dx = 0.05 m,
@@ -340,7 +335,7 @@ def reconstruct(
                                           surfel_steps=surfel_steps, rgb=collider_rgb, progress=progress)
     spec["bodies"] = [{"shape": "points", "path": "body.npy", "ppc": ppc, "name": name, "material": table}]
     obs = dataset.observation
-    fall = free_fall(obs.masks, _cameras(obs), np.asarray(obs.times), spec["dx"], gravity=spec["gravity"])
+    fall = free_fall(obs.masks, observation_cameras(obs), np.asarray(obs.times), spec["dx"], gravity=spec["gravity"])
     if fall.velocity is not None:
         spec["bodies"][0]["velocity"] = [float(v) for v in fall.velocity]
     if "gravity" not in dataset.hint and fall.gravity is not None and fall.frames >= GRAVITY_FRAMES:
@@ -488,7 +483,8 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
         model = model.with_substeps(2 * model.substeps)
     idx = np.round(np.asarray(observation.times) / model.frame_dt).astype(int)
     x = np.asarray(traj.x)[idx]
-    return render_views(x, _cameras(observation), RENDERER, spacing=float(np.cbrt(np.asarray(model.bodies[0].vol0)[0])))["masks"]
+    spacing = float(np.cbrt(np.asarray(model.bodies[0].vol0)[0]))
+    return render_views(x, observation_cameras(observation), RENDERER, spacing=spacing)["masks"]
 
 
 def overlay_frames(observed: np.ndarray, simulated: np.ndarray, views: int = 4) -> np.ndarray:
