@@ -162,3 +162,33 @@ def test_2dgs_lowpass_is_a_half_pixel_disc_around_the_projected_centre():
     np.testing.assert_allclose(alpha["2dgs"], 0.8 * np.exp(-d2), atol=1e-6)
     assert alpha[None][4, 4] == pytest.approx(0.8, rel=1e-5)
     assert np.abs(alpha[None][d2 > 0]).max() < 1e-6
+
+
+@pytest.mark.parametrize("kind", ["surfels", "volume"])
+def test_rendering_view_after_view_outside_jit_compiles_once(kind):
+    """A pipeline renders one view after the other without a jit of its own: the second view
+    (same sizes, another camera, moved particles, a pixel subset as before) reuses the first
+    view's programs, and gives what a jitted call gives."""
+    x, _ = sphere_particles(0.15, H)
+    xj = jnp.asarray(x, jnp.float32)
+    rend = (SurfelRenderer if kind == "surfels" else VolumeRenderer).for_particles(np.concatenate([x, x + 0.05]), spacing=H)
+    cams = [look_at(eye, (0.0, 0.0, 0.0), fov_deg=40.0, width=24, dtype=jnp.float32)
+            for eye in ((0.0, 0.3, -1.5), (1.0, 0.5, -1.0))]
+    pixels = np.arange(0, 24 * 24, 3)
+    moved = xj + 0.02
+    compiles = []
+
+    def listen(event, secs, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        first = (rend.render(xj, cams[0]), rend.silhouette(xj, cams[0], pixels=pixels))
+        compiled = len(compiles)
+        second = (rend.render(moved, cams[1]), rend.silhouette(moved, cams[1], pixels=pixels))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled > 0 and len(compiles) == compiled  # nothing new for the second view
+    assert float(first[0].alpha.sum()) > 20 and float(second[1].sum()) > 5
+    np.testing.assert_allclose(np.asarray(second[0].rgb), np.asarray(jax.jit(rend.render)(moved, cams[1]).rgb), atol=1e-6)
