@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 from typing import Callable, TypeVar
 
+import equinox as eqx
 import jax
 
 F = TypeVar("F", bound=Callable)
@@ -28,3 +29,20 @@ def full_precision(fn: F) -> F:
             return fn(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]
+
+
+def compiled_entry(fn: F) -> F:
+    """An entry point (a renderer's ``render``, :func:`jaxmpm.simulate`): traced at full
+    precision (:func:`full_precision`) and compiled once per static arguments and input shapes
+    (``equinox.filter_jit``: arrays are inputs, everything else is part of the key). Called
+    outside a jitted function it runs one compiled program instead of executing (and
+    compiling) operation by operation, and a second call with the same shapes reuses it;
+    inside a jitted function it is inlined. It stays a plain function (or method), so
+    ``jax.jit(renderer.render)`` works as for any other."""
+    compiled = eqx.filter_jit(full_precision(fn))
+
+    @functools.wraps(fn)
+    def entry(*args, **kwargs):
+        return compiled(*args, **kwargs)
+
+    return entry  # type: ignore[return-value]

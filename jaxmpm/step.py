@@ -28,7 +28,7 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .model import Collision, Model, Params
-from .precision import full_precision
+from .precision import compiled_entry, full_precision
 from .state import (
     Grid,
     State,
@@ -585,7 +585,7 @@ def _left_domain(grid: Grid, x: Float[Array, "N D"]) -> Int[Array, ""]:
     return jnp.sum(outside.astype(jnp.int32))
 
 
-@full_precision
+@compiled_entry
 def simulate(
     model: Model,
     params: Params,

@@ -72,6 +72,30 @@ def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
         np.testing.assert_allclose(p, p0, atol=1e-10 * float(state.mass.sum()))
 
 
+def test_a_rollout_called_outside_jit_is_one_program_reused_for_other_parameters():
+    """``simulate`` outside a jitted function compiles once per scene layout and frame count:
+    a second rollout with another viscosity compiles nothing, and equals the jitted one."""
+    scene = load_scene(block_spec(2, {"model": "newtonian", "mu": 1.0, "kappa": 1e3}, frames=3, substeps=5))
+    body = dict(scene.params["bodies"][0], mu=jnp.asarray(5.0, jnp.float32))
+    other = dict(scene.params, bodies=(body,))
+    compiles = []
+
+    def listen(event, secs, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        first = simulate(scene.model, scene.params, checkpoint=None)
+        compiled = len(compiles)
+        second = simulate(scene.model, other, checkpoint=None)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert compiled > 0 and len(compiles) == compiled
+    assert float(jnp.max(jnp.abs(first.x[-1] - second.x[-1]))) > 0  # the viscosity acted
+    np.testing.assert_array_equal(second.x, jax.jit(lambda p: simulate(scene.model, p, checkpoint=None).x)(other))
+
+
 def test_single_step_is_pure_and_advances_time(dim):
     scene = load_scene(block_spec(dim))
     state = initial_state(scene.model, scene.params)

@@ -67,6 +67,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..errors import ObservationError
+from ..precision import compiled_entry
 from .camera import Camera
 from .volume import (
     AbstractRenderer,
@@ -76,7 +77,6 @@ from .volume import (
     finish_image,
     map_pixel_chunks,
     prepare_inputs,
-    renderer_entry,
 )
 
 _COS_MIN = 1e-4
@@ -360,7 +360,7 @@ class SurfelRenderer(AbstractRenderer):
 
     # --- rendering -------------------------------------------------------------------
 
-    @renderer_entry
+    @compiled_entry
     def render(
         self,
         positions: Float[Array, "N 3"],
@@ -408,7 +408,7 @@ class SurfelRenderer(AbstractRenderer):
         out = self._pixel_loop(pair_fn, (terms, opac, colors), boxes, camera, pixels)
         return finish_image(out, camera, pixels)
 
-    @renderer_entry
+    @compiled_entry
     def silhouette(
         self,
         positions: Float[Array, "N 3"],

@@ -35,7 +35,6 @@ memory of a forward+backward pass is one chunk's plus the voxel grid's.
 from __future__ import annotations
 
 import abc
-import functools
 import math
 
 import equinox as eqx
@@ -45,7 +44,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..errors import ObservationError
-from ..precision import full_precision
+from ..precision import compiled_entry
 from .camera import Camera
 
 DEFAULT_COLOR = (0.85, 0.45, 0.2)
@@ -67,22 +66,6 @@ class Rendered(eqx.Module):
     rgb: Float[Array, "... 3"]
     alpha: Float[Array, "..."]
     depth: Float[Array, "..."]
-
-
-def renderer_entry(fn):
-    """A renderer's public method: traced at full matrix-product precision
-    (:func:`~jaxmpm.precision.full_precision`) and compiled once per renderer, camera size and
-    input shapes (``equinox.filter_jit``). Called outside a jitted function (a pipeline or a
-    report rendering view after view) it reuses one program instead of compiling its pixel
-    loop again at every call; inside one it is inlined like any other function. It stays a
-    plain method, so ``jax.jit(renderer.render)`` works as for any bound method."""
-    compiled = eqx.filter_jit(full_precision(fn))
-
-    @functools.wraps(fn)
-    def method(self, *args, **kwargs):
-        return compiled(self, *args, **kwargs)
-
-    return method
 
 
 class AbstractRenderer(eqx.Module):
@@ -441,7 +424,7 @@ class VolumeRenderer(AbstractRenderer):
         bg = jnp.asarray(self.background, dtype=dtype)
         return composite(-jnp.expm1(log_keep), log_keep, z, lambda w: jnp.sum(w[..., None] * color, axis=1), bg)
 
-    @renderer_entry
+    @compiled_entry
     def render(
         self,
         positions: Float[Array, "N 3"],
