@@ -729,22 +729,36 @@ def run_frames(
     """
     from .errors import SimulationError
 
-    model, params, state = _start(model, params, state)
-    base = _health_baseline(model, params, state)
-    frame = jax.jit(_frame_function(model, params, observe, None, base))
+    model, params, state, base, out = _first_frame(model, params, state, observe)
     outputs = []
-    out = _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
     for i in range(model.frames):
         if i > 0:
-            state, out = frame(state, None)
+            state, out = _next_frame(model, params, state, observe, base)
         values = (float(out[3]), bool(out[4]), float(out[6]), float(out[7]))
         if _frame_unhealthy(*(np.asarray(v) for v in values), cfl_limit, energy_limit):
             raise SimulationError(_unstable_message(model, i, *values, cfl_limit, energy_limit))
         outputs.append(out)
         if on_frame is not None and i > 0:
             on_frame(i)
-    stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *outputs)
+    stacked = jax.tree_util.tree_map(lambda *a: jnp.asarray(np.stack(a)), *outputs)  # on the host: nothing to compile
     return _trajectory(model, stacked, state)
+
+
+@compiled_entry
+def _first_frame(model: Model, params: Params, state: State | None, observe):
+    """:func:`run_frames`' start as one compiled program (run operation by operation it
+    compiled dozens of small ones): the prepared model and params, the initial state, the
+    health baseline and frame 0's outputs."""
+    model, params, state = _start(model, params, state)
+    base = _health_baseline(model, params, state)
+    return model, params, state, base, _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
+
+
+@compiled_entry
+def _next_frame(model: Model, params: Params, state: State, observe, base: _HealthBaseline):
+    """:func:`run_frames`' frame: one compiled program per model layout and ``observe``,
+    reused by later runs with other parameters."""
+    return _frame_function(model, params, observe, None, base)(state, None)
 
 
 def _frame_outputs(model: Model, params: Params, s: State, observe, cfl, base: _HealthBaseline):

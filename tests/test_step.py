@@ -9,7 +9,7 @@ from scenes import block_spec
 from jaxmpm.model import initial_state
 from jaxmpm.scene import load_scene
 from jaxmpm.state import Grid, stencil_terms
-from jaxmpm.step import compute_stencil, p2g, simulate, stencil_offsets, step
+from jaxmpm.step import compute_stencil, p2g, run_frames, simulate, stencil_offsets, step
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, pytest.param(jnp.float64, marks=pytest.mark.x64)])
@@ -72,12 +72,16 @@ def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
         np.testing.assert_allclose(p, p0, atol=1e-10 * float(state.mass.sum()))
 
 
-def test_a_rollout_called_outside_jit_is_one_program_reused_for_other_parameters():
-    """``simulate`` outside a jitted function compiles once per scene layout and frame count:
-    a second rollout with another viscosity compiles nothing, and equals the jitted one."""
+@pytest.mark.parametrize("rollout", ["simulate", "run_frames"])
+def test_a_rollout_called_outside_jit_is_one_program_reused_for_other_parameters(rollout):
+    """``simulate`` and ``run_frames`` outside a jitted function compile once per scene layout
+    and frame count: a second rollout with another viscosity compiles nothing, and equals the
+    jitted ``simulate``."""
     scene = load_scene(block_spec(2, {"model": "newtonian", "mu": 1.0, "kappa": 1e3}, frames=3, substeps=5))
     body = dict(scene.params["bodies"][0], mu=jnp.asarray(5.0, jnp.float32))
     other = dict(scene.params, bodies=(body,))
+    run = (lambda p: simulate(scene.model, p, checkpoint=None)) if rollout == "simulate" else (
+        lambda p: run_frames(scene.model, p))
     compiles = []
 
     def listen(event, secs, **kw):
@@ -86,9 +90,9 @@ def test_a_rollout_called_outside_jit_is_one_program_reused_for_other_parameters
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        first = simulate(scene.model, scene.params, checkpoint=None)
+        first = run(scene.params)
         compiled = len(compiles)
-        second = simulate(scene.model, other, checkpoint=None)
+        second = run(other)
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
     assert compiled > 0 and len(compiles) == compiled
