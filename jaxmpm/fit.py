@@ -469,6 +469,7 @@ def fit(
     scan_left = set() if not c.scan else {
         n for n in names if isinstance(transform_of(n), Log10) and np.ndim(initial[n]) == 0}
     total_iterations = 0
+    solved: set[str] = set()  # the names an earlier stage has fitted (their later stages start warm)
     for si, stage in enumerate(plan):
         stage_method = stage.method or c.method
         if stage_method not in METHODS:
@@ -509,7 +510,8 @@ def fit(
                 say(notes[-1])
                 stage_fall = {**picked, "candidate": np.asarray(picked["candidate"], float).tolist()}
             outcome = _solve(stage_method, objective, stage_residuals, y0, c, steps=steps, seed=c.seed + si,
-                             progress=progress, offset=total_iterations)
+                             progress=progress, offset=total_iterations,
+                             warm=set(snames) <= solved and not to_scan and stage_fall is None)
             if outcome.unhealthy_start:
                 why = objective.health(params_of(y0)) or "the loss is not finite (NaN residuals)"
                 if halvings_left <= 0:
@@ -523,6 +525,7 @@ def fit(
                 say(notes[-1])
                 continue
             total_iterations += outcome.iterations
+            solved.update(snames)
             for n in snames:
                 y_all[n] = outcome.y[n]
             if outcome.unhealthy_trial and not outcome.converged and halvings_left > 0:
@@ -642,12 +645,13 @@ class StageResiduals(eqx.Module):
 
 
 def _solve(method: str, objective: Objective, residuals: StageResiduals, y0: dict, c: FitConfig, *, steps: int,
-           seed: int, progress, offset: int) -> SolverOutcome:
-    """One stage's solver run on ``objective`` over the variables ``y0`` (optimisation space)."""
+           seed: int, progress, offset: int, warm: bool = False) -> SolverOutcome:
+    """One stage's solver run on ``objective`` over the variables ``y0`` (optimisation space);
+    ``warm``: every variable starts from an earlier stage's result."""
     dtype = jnp.result_type(float)
     if method == "lm":
         return levenberg_marquardt(residuals, y0, max_steps=steps, rtol=c.rtol, atol=c.atol, progress=progress,
-                                   offset=offset)
+                                   offset=offset, warm=warm)
     if method == "bfgs":
         def loss(y):
             return objective.loss(residuals.params(y)).astype(dtype)

@@ -224,6 +224,34 @@ def test_round_off_floor_is_recognised_only_where_the_gauss_newton_step_promises
 
 
 @pytest.mark.x64
+def test_a_warm_stage_at_its_floor_stops_before_a_trial_and_a_far_one_runs_as_before():
+    """``levenberg_marquardt(warm=True)`` (a later stage starting from an earlier one's result)
+    tests the round-off floor before its first trial: started at the floor of the rough
+    residuals above it stops there, converged, without the rejected trial a cold start spends;
+    started far away it takes the same iterates as a cold start."""
+    import jax.numpy as jnp
+
+    from jaxmpm.identify.solvers import levenberg_marquardt
+
+    k = jnp.arange(1, 201, dtype=jnp.float64)
+
+    def residuals(y):
+        return (y["theta"] - 3.0) + jax.lax.stop_gradient(0.1 * jnp.sin(1e7 * y["theta"] * k + k**2))
+
+    def solve(start, warm):
+        return levenberg_marquardt(residuals, {"theta": jnp.asarray(start, jnp.float64)}, max_steps=20, rtol=1e-9,
+                                   atol=1e-12, warm=warm)
+
+    cold, warm = solve(3.01, False), solve(3.01, True)
+    assert cold.timing["rejected_steps"] >= 1 and cold.converged
+    assert warm.converged and "round-off floor" in warm.message
+    assert warm.iterations == 1 and warm.timing["rejected_steps"] == 0 and warm.timing["floor_checks"] == 1
+    assert float(warm.y["theta"]) == 3.01
+    far_cold, far_warm = solve(0.0, False), solve(0.0, True)
+    assert far_warm.losses == far_cold.losses and float(far_warm.y["theta"]) == float(far_cold.y["theta"])
+
+
+@pytest.mark.x64
 def test_round_off_probe_is_short_in_every_parameter():
     """Far from the minimum of a strongly nonlinear residual, with a second parameter already
     at its optimum (its Gauss-Newton component ~0): the probe must be short along the step's

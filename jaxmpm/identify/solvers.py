@@ -249,23 +249,24 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
     (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
     point: converged)."""
+    n = f"{iterations} iteration{'s' * (iterations != 1)}"
     return {
-        "converged": f"converged in {iterations} iterations",
-        "stationary": (f"converged in {iterations} iterations (the last {MAX_REJECTED_STEPS} trial steps could not "
+        "converged": f"converged in {n}",
+        "stationary": (f"converged in {n} (the last {MAX_REJECTED_STEPS} trial steps could not "
                        "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
                        "at this precision)"),
-        "floor": (f"converged in {iterations} iterations (at the loss's round-off floor: no trial step lowered it "
-                  "and the Gauss-Newton step promises less than the loss's measured round-off noise; parameters "
+        "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than the loss's "
+                  "measured round-off noise, so no step can be told from noise; parameters "
                   "in poorly determined directions are known only to their std)"),
-        "rough": (f"stalled after {iterations} iterations away from a stationary point: the Gauss-Newton step is "
+        "rough": (f"stalled after {n} away from a stationary point: the Gauss-Newton step is "
                   "still large but neither the trust region nor a line search along it lowers the loss (a rough "
                   "loss at this precision; try float64, another starting point or method='adam')"),
-        "unstable": f"stalled after {iterations} iterations: the trial steps made the simulation unstable",
-        "creep": (f"converged in {iterations} iterations (the last step lowered the loss by less than "
+        "unstable": f"stalled after {n}: the trial steps made the simulation unstable",
+        "creep": (f"converged in {n} (the last step lowered the loss by less than "
                   f"{100 * CREEP:g} % and the Gauss-Newton step there is within tolerance: a stationary point at this "
                   "precision)"),
         "cap": f"did not converge within {max_steps} iterations",
-        "cap-stationary": (f"converged in {iterations} iterations (the iteration limit was reached, but the "
+        "cap-stationary": (f"converged in {n} (the iteration limit was reached, but the "
                            "Gauss-Newton step there is within tolerance: a stationary point at this precision)"),
     }[how]
 
@@ -317,6 +318,7 @@ def levenberg_marquardt(
     upper: np.ndarray | None = None,
     ftol: float | None = None,
     scaled: bool = False,
+    warm: bool = False,
 ) -> SolverOutcome:
     """Levenberg–Marquardt on ``residuals(y) -> (M,)``, optionally within bounds.
 
@@ -335,6 +337,9 @@ def levenberg_marquardt(
             start, first damping :data:`MARQUARDT_START` of it) instead of optimistix's
             identity, and hold the parameters the data do not see (:data:`INERT`): invariant
             to the parameters' units, for parameters of unrelated kinds.
+        warm: ``y0`` is an earlier solve's result (a later stage of a fit): the round-off
+            floor test below also runs before the first trial, so that a stage that starts at
+            its floor costs one evaluation and a probe instead of a rejected trial as well.
 
     The algorithm is optimistix's ``LevenbergMarquardt`` (a damped Gauss–Newton descent in a
     classical trust region, :data:`TRUST_LOW` ...; Cauchy termination), run on the host over
@@ -475,7 +480,7 @@ def levenberg_marquardt(
         # from a minimum; and at the loss's numerical floor the region shrinks without the test
         # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
         # is within tolerance or promises less than the loss's round-off noise.
-        if 0 < since_accept < MAX_REJECTED_STEPS and floor_checks < MAX_FLOOR_CHECKS:
+        if (0 < since_accept < MAX_REJECTED_STEPS or (warm and iterations == 1)) and floor_checks < MAX_FLOOR_CHECKS:
             # a rejected trial at the loss's round-off floor: no step can be told from noise,
             # so waiting for more rejections would only spend rollouts
             t_check = time.perf_counter()
@@ -536,7 +541,9 @@ def _step_timing(steps_s: list[float]) -> dict:
     others, their sum, and the compilation estimated as the first's excess over the median."""
     if not steps_s:
         return {"first_step_s": 0.0, "step_s": 0.0, "steps_s": 0.0, "compile_s": 0.0}
-    median = float(np.median(steps_s[1:])) if len(steps_s) > 1 else 0.0
+    if len(steps_s) == 1:  # nothing to compare the first with
+        return {"first_step_s": steps_s[0], "step_s": 0.0, "steps_s": steps_s[0], "compile_s": 0.0}
+    median = float(np.median(steps_s[1:]))
     return {"first_step_s": steps_s[0], "step_s": median, "steps_s": float(np.sum(steps_s)),
             "compile_s": max(steps_s[0] - median, 0.0)}
 
