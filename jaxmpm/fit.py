@@ -227,6 +227,8 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
     contact with the fitted velocity and refits it on a shorter window if needed). Returns None when nothing touches within the data, and
     0.0 when the body is in contact from the start.
     """
+    from .step import simulate
+
     times = np.asarray(observation.times, float)
     tol = 0.05 * model.grid.dx if tol is None else tol
     if observation.positions is not None and observation.point_ids == "particles" and len(times) >= 2:
@@ -235,9 +237,8 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
         scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
         bad = np.flatnonzero(~(disp <= tol * np.maximum(scale, 1e-9)))
         return None if len(bad) == 0 else float(times[bad[0]])
-    from .step import forward
 
-    x = np.asarray(forward(model, params, frames_needed(model, times)).x, float)
+    x = np.asarray(simulate(model, params, checkpoint=None, frames=frames_needed(model, times)).x, float)
     disp = _velocity_dispersion(x)
     bad = np.flatnonzero(~(disp <= tol))
     if len(bad) == 0:

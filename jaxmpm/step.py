@@ -640,15 +640,6 @@ def simulate(
     return _trajectory(model, out, final)
 
 
-@eqx.filter_jit
-def forward(model: Model, params: Params, frames: int | None = None) -> Trajectory:
-    """:func:`simulate` forward only (no checkpointing), compiled once per model structure
-    and frame count: equinox's ``filter_jit`` makes the model's arrays inputs, so a second
-    rollout of the same scene layout (other parameters, other collider fields) reuses the
-    compilation. For the library's own look-ahead rollouts (contact detection, health)."""
-    return simulate(model, params, checkpoint=None, frames=frames)
-
-
 def _start(model: Model, params: Params, state: State | None):
     """The model and params with extensions prepared, and the initial state."""
     from .model import initial_state

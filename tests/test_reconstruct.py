@@ -358,12 +358,13 @@ def test_an_unhealthy_evaluation_halves_dt_and_says_so(dataset, tmp_path):
     5 substeps per frame this scene's rollout is unhealthy, at 10 it is not."""
     from jaxmpm.identify.residuals import frames_needed
     from jaxmpm.reconstruct.pipeline import simulated_masks
-    from jaxmpm.step import forward, health_message
+    from jaxmpm.step import health_message, simulate
 
     ds = read_dataset(dataset[0])
     scene = load_scene(write_scene(reconstruct(ds, "newtonian", surfels=False), tmp_path / "s"))
     coarse = scene.model.with_substeps(5)
-    assert health_message(coarse, forward(coarse, scene.params, frames_needed(coarse, ds.observation.times)))
+    assert health_message(coarse, simulate(coarse, scene.params, checkpoint=None,
+                                           frames=frames_needed(coarse, ds.observation.times)))
     notes = []
     masks = simulated_masks(scene, scene.params, ds.observation, 5, notes=notes)
     assert masks.shape == ds.observation.masks.shape and masks.any()

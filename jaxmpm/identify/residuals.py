@@ -60,7 +60,7 @@ from ..errors import JaxmpmError, ObservationError
 from ..model import Model, Params
 from ..observe import Observation
 from ..state import State, make_state
-from ..step import Trajectory, forward, health_message, simulate, unhealthy
+from ..step import Trajectory, health_message, simulate, unhealthy
 
 __all__ = [
     "TERMS",
@@ -876,7 +876,8 @@ class Objective:
     def health(self, params: Params) -> str | None:
         """None when the rollout at ``params`` is healthy over the window, else the one line
         of :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
-        return health_message(self.model, forward(self.model, params, self.length).head(self.frames), self.cfl_limit)
+        return health_message(self.model, simulate(self.model, params, checkpoint=None, frames=self.length).head(self.frames),
+                              self.cfl_limit)
 
     @property
     def cfl_limit(self) -> float:

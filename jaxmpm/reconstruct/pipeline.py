@@ -459,19 +459,19 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
     """Silhouettes ``(V, T, H, W)`` uint8 of a rollout with ``params`` at the observed times
     (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's).
 
-    The rollout is :func:`jaxmpm.step.forward`'s (the compilation the fit's contact detection
-    made). An unhealthy one (:func:`jaxmpm.step.health_message`) is repeated with dt halved,
+    The rollout is :func:`jaxmpm.simulate`'s without checkpoints (the compilation the fit's
+    contact detection made). An unhealthy one (:func:`jaxmpm.step.health_message`) is repeated with dt halved,
     up to :data:`EVALUATION_HALVINGS` times, and a line saying so is appended to ``notes``: a
     fit's health checks ran at points a float32 round trip away from its result, and a rollout
     near an instability can fall either side (measured: a Newtonian fit on jittered masks whose
     result, re-simulated, reached CFL 1.16 in the last frame)."""
     from ..render import render_views
-    from ..step import forward, health_message
+    from ..step import health_message, simulate
 
     model = scene.model if substeps is None else scene.model.with_substeps(int(substeps))
     frames = frames_needed(model, np.asarray(observation.times, float))
     for halvings in range(EVALUATION_HALVINGS + 1):
-        traj = forward(model, params, frames)
+        traj = simulate(model, params, checkpoint=None, frames=frames)
         why = health_message(model, traj)
         if why is None:
             break
