@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import counting_compilations
 
 from jaxmpm.render import SurfelRenderer, VolumeRenderer, look_at
 
@@ -176,19 +177,10 @@ def test_rendering_view_after_view_outside_jit_compiles_once(kind):
             for eye in ((0.0, 0.3, -1.5), (1.0, 0.5, -1.0))]
     pixels = np.arange(0, 24 * 24, 3)
     moved = xj + 0.02
-    compiles = []
-
-    def listen(event, secs, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(event)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with counting_compilations() as compiles:
         first = (rend.render(xj, cams[0]), rend.silhouette(xj, cams[0], pixels=pixels))
         compiled = len(compiles)
         second = (rend.render(moved, cams[1]), rend.silhouette(moved, cams[1], pixels=pixels))
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert compiled > 0 and len(compiles) == compiled  # nothing new for the second view
     assert float(first[0].alpha.sum()) > 20 and float(second[1].sum()) > 5
     np.testing.assert_allclose(np.asarray(second[0].rgb), np.asarray(jax.jit(rend.render)(moved, cams[1]).rgb), atol=1e-6)

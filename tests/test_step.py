@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compiles import counting_compilations
 from scenes import block_spec
 
 from jaxmpm.model import initial_state
@@ -82,19 +83,10 @@ def test_a_rollout_called_outside_jit_is_one_program_reused_for_other_parameters
     other = dict(scene.params, bodies=(body,))
     run = (lambda p: simulate(scene.model, p, checkpoint=None)) if rollout == "simulate" else (
         lambda p: run_frames(scene.model, p))
-    compiles = []
-
-    def listen(event, secs, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiles.append(event)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with counting_compilations() as compiles:
         first = run(scene.params)
         compiled = len(compiles)
         second = run(other)
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert compiled > 0 and len(compiles) == compiled
     assert float(jnp.max(jnp.abs(first.x[-1] - second.x[-1]))) > 0  # the viscosity acted
     np.testing.assert_array_equal(second.x, jax.jit(lambda p: simulate(scene.model, p, checkpoint=None).x)(other))
