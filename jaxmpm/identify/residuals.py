@@ -876,8 +876,8 @@ class Objective:
     def health(self, params: Params) -> str | None:
         """None when the rollout at ``params`` is healthy over the window, else the one line
         of :func:`jaxmpm.step.health_message` naming the first unhealthy frame."""
-        return health_message(self.model, simulate(self.model, params, checkpoint=None, frames=self.length).head(self.frames),
-                              self.cfl_limit)
+        traj = simulate(self.model, params, checkpoint=None, frames=self.length)
+        return health_message(self.model, traj.head(self.frames), self.cfl_limit)
 
     @property
     def cfl_limit(self) -> float:

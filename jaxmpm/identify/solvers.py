@@ -255,9 +255,9 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
         "stationary": (f"converged in {n} (the last {MAX_REJECTED_STEPS} trial steps could not "
                        "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
                        "at this precision)"),
-        "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than the loss's "
-                  "measured round-off noise, so no step can be told from noise; parameters "
-                  "in poorly determined directions are known only to their std)"),
+        "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than "
+                  "the loss's measured round-off noise, so no step can be told from noise; parameters in poorly "
+                  "determined directions are known only to their std)"),
         "rough": (f"stalled after {n} away from a stationary point: the Gauss-Newton step is "
                   "still large but neither the trust region nor a line search along it lowers the loss (a rough "
                   "loss at this precision; try float64, another starting point or method='adam')"),

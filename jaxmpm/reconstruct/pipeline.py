@@ -460,8 +460,8 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
     (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's).
 
     The rollout is :func:`jaxmpm.simulate`'s without checkpoints (the compilation the fit's
-    contact detection made). An unhealthy one (:func:`jaxmpm.step.health_message`) is repeated with dt halved,
-    up to :data:`EVALUATION_HALVINGS` times, and a line saying so is appended to ``notes``: a
+    contact detection made). An unhealthy one (:func:`jaxmpm.step.health_message`) is
+    repeated with dt halved, up to :data:`EVALUATION_HALVINGS` times, and a line saying so is appended to ``notes``: a
     fit's health checks ran at points a float32 round trip away from its result, and a rollout
     near an instability can fall either side (measured: a Newtonian fit on jittered masks whose
     result, re-simulated, reached CFL 1.16 in the last frame)."""
