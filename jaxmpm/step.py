@@ -623,11 +623,9 @@ def simulate(
     if checkpoint not in CHECKPOINT_POLICIES:
         raise ValueError(f"checkpoint must be one of {CHECKPOINT_POLICIES}, got {checkpoint!r}")
     frames = model.frames if frames is None else frames
-    model, params, state = _start(model, params, state)
-    base = _health_baseline(model, params, state)
+    model, params, state, base, first = _prologue(model, params, state, observe)
     frame = _frame_function(model, params, observe, checkpoint, base)
     zero = jnp.zeros((), state.x.dtype)
-    first = _frame_outputs(model, params, state, observe, zero, base)
     if active is None:
         final, rest = jax.lax.scan(frame, state, None, length=frames - 1)
     else:
@@ -720,7 +718,7 @@ def run_frames(
     """
     from .errors import SimulationError
 
-    model, params, state, base, out = _first_frame(model, params, state, observe)
+    model, params, state, base, out = _first_frame(model, params, state, observe)  # one program, not op by op
     outputs = []
     for i in range(model.frames):
         if i > 0:
@@ -735,14 +733,17 @@ def run_frames(
     return _trajectory(model, stacked, state)
 
 
-@compiled_entry
-def _first_frame(model: Model, params: Params, state: State | None, observe):
-    """:func:`run_frames`' start as one compiled program (run operation by operation it
-    compiled dozens of small ones): the prepared model and params, the initial state, the
-    health baseline and frame 0's outputs."""
+def _prologue(model: Model, params: Params, state: State | None, observe):
+    """A rollout's start: the prepared model and params, the initial state, the health
+    baseline and frame 0's outputs."""
     model, params, state = _start(model, params, state)
     base = _health_baseline(model, params, state)
     return model, params, state, base, _frame_outputs(model, params, state, observe, jnp.zeros((), state.x.dtype), base)
+
+
+#: :func:`run_frames`' start as one compiled program (run operation by operation it compiled
+#: dozens of small ones).
+_first_frame = compiled_entry(_prologue)
 
 
 @compiled_entry
