@@ -251,6 +251,82 @@ def test_a_warm_stage_at_its_floor_stops_before_a_trial_and_a_far_one_runs_as_be
     assert far_warm.losses == far_cold.losses and float(far_warm.y["theta"]) == float(far_cold.y["theta"])
 
 
+def _quantised_residuals():
+    """Float32 residuals quantised at 1e-6 (as a float32 rollout's positions are at their last
+    bit), whose Jacobian sees only the smooth part, and a start ``a = 0, b = 3`` at their floor:
+    a misfit ``c`` mostly outside the Jacobian's span, whose Gauss-Newton step moves ``a`` by
+    ~1e-8 (representable near 0) and ``b`` by less than half of float32's resolution at 3."""
+    import jax.numpy as jnp
+
+    i = jnp.arange(100, dtype=jnp.float32)
+    u, w, q = jnp.cos(0.37 * i), 4.0 * (jnp.sin(0.37 * i) + 0.5), 1e-6
+    c = q * jnp.round(3.0 * jnp.sin(1.3 * i**2))  # whole steps of q, most of it irreducible
+
+    def residuals(y):
+        smooth = y["a"] * u + (y["b"] - 3.0) * w + c
+        return smooth + jax.lax.stop_gradient(q * jnp.round(smooth / q) - smooth)
+
+    return residuals, {"a": jnp.asarray(0.0, jnp.float32), "b": jnp.asarray(3.0, jnp.float32)}
+
+
+def test_a_gauss_newton_step_that_moves_no_residual_is_at_the_floor():
+    """A Gauss-Newton step below the loss's resolution changes no residual: the floor. Measuring
+    the noise as the remainder of the linear model for the step *as rounded* to float32 is wrong
+    there: ``b``'s component does not round, so the remainder is smaller than the promise (the
+    8,000-particle fit's velocity, 1e-14 m/s near 0 beside 8e-8 m/s near -1, waited for six
+    rejected trials per stage so)."""
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from jaxmpm.identify.solvers import at_round_off_floor, gauss_newton_step, residuals_and_jacobian
+
+    residuals, y = _quantised_residuals()
+    rj, _, _ = residuals_and_jacobian(residuals, y)
+    flat = jax.flatten_util.ravel_pytree(y)[0]
+    delta, small = gauss_newton_step(rj, flat, 1e-5)
+    r, J = (np.asarray(a, np.float64) for a in rj(flat))
+    assert small and 0 < abs(delta[0]) and 0 < abs(delta[1]) < 0.5 * float(np.spacing(np.float32(3.0)))
+    probe = np.asarray(jnp.asarray(np.asarray(flat, np.float64) + delta, jnp.float32), np.float64)
+    assert probe[0] != 0.0 and probe[1] == 3.0  # a moves, b rounds back
+    promised = float(np.sum((J @ delta) ** 2))
+    assert np.array_equal(np.asarray(rj(jnp.asarray(probe, jnp.float32))[0]), np.asarray(residuals(y)))
+    assert float(np.sum((J @ (probe - np.asarray(flat, np.float64))) ** 2)) < promised  # the old remainder
+    assert promised < 0.5 * float(r @ r)  # the stage's gate lets the probe run
+    assert at_round_off_floor(rj, flat, delta)
+
+
+def test_lm_at_a_resolution_floor_stops_at_its_first_rejected_trial():
+    """Levenberg-Marquardt started at the floor of the quantised residuals above: its first
+    trial moves no residual and is rejected, and the floor test after it ends the stage,
+    converged at the start, with one probe (not five more trials and four probes)."""
+    from jaxmpm.identify.solvers import levenberg_marquardt
+
+    residuals, y = _quantised_residuals()
+    out = levenberg_marquardt(residuals, y, max_steps=20, rtol=1e-5, atol=1e-12)
+    assert out.converged and "round-off floor" in out.message, out.message
+    assert out.iterations == 2 and out.timing["rejected_steps"] == 1 and out.timing["floor_checks"] == 1
+    assert float(out.y["a"]) == 0.0 and float(out.y["b"]) == 3.0
+
+
+def test_lm_probes_the_floor_once_per_accepted_point():
+    """Trials rejected one after another from the same point probe the round-off floor once:
+    the probe from that point along the same Gauss-Newton step would measure the same noise.
+    Host residuals that are linear within the probe's reach of the start and rise ten-fold
+    beyond it (every trial rejected, the probe finding no noise)."""
+    from jaxmpm.identify.solvers import levenberg_marquardt
+
+    A = np.array([[1.0, 0.0], [0.0, 2.0], [1.0, 1.0], [0.0, 0.0]])
+    b = np.array([1.0, 1.0, 1.0, 3.0])  # its last entry outside A's span: a loss no step removes
+
+    def residuals(v):
+        near = np.max(np.abs(v)) <= 2e-4  # the probe's reach from the start y = 0
+        return (A @ v - b) * (1.0 if near else 10.0)
+
+    out = levenberg_marquardt(residuals, np.zeros(2), jacobian=lambda v: A, max_steps=20, rtol=1e-6, atol=1e-12)
+    assert not out.converged and out.timing["rejected_steps"] == 6
+    assert out.timing["floor_checks"] == 1 and float(np.max(np.abs(out.y))) == 0.0
+
+
 @pytest.mark.x64
 def test_round_off_probe_is_short_in_every_parameter():
     """Far from the minimum of a strongly nonlinear residual, with a second parameter already

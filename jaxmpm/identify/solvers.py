@@ -48,8 +48,9 @@ __all__ = [
 #: Consecutive rejected Levenberg–Marquardt steps (each shrinking the trust region) after
 #: which the solver asks whether it stands at a stationary point.
 MAX_REJECTED_STEPS = 6
-#: Round-off floor tests (each one extra evaluation) a stage may spend on single rejected
-#: trials before ``MAX_REJECTED_STEPS``: a rejection at the floor ends the stage at once.
+#: Round-off floor tests (each one extra evaluation) a stage may spend at the first rejected
+#: trial from each accepted point, before ``MAX_REJECTED_STEPS``: a rejection at the floor ends
+#: the stage at once. (Further rejections from the same point would repeat the same probe.)
 MAX_FLOOR_CHECKS = 4
 #: ... and only when the Gauss–Newton step promises less than this fraction of the loss: near
 #: a minimum the step promises the loss above its irreducible part, so a promise of less than
@@ -193,16 +194,27 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
     promise is below it, no step can be told apart from noise: a stationary point at this
     precision (the loss's floor), though the step itself may not be small in a poorly
     determined direction. ``r, J`` at ``flat`` are evaluated unless given.
+
+    When the whole step is short enough to be the probe and moves no residual at all (in the
+    residuals' own precision), it lies below the loss's resolution: the floor too. (The
+    remainder would then be the linear model's change for the step *as rounded* to the
+    parameters' precision, which a component too small to round, such as a velocity
+    near 0 beside one near 1 m/s, makes smaller than the promise: at 8,000 particles each
+    stage used to wait for six rejected trials there.)
     """
     if r is None or J is None:
         r, J = (np.asarray(a, np.float64) for a in rj(flat))
     y = np.asarray(flat, np.float64)
     # the step's largest component, relative to 1 + |y|, becomes NOISE_PROBE
     t = min(NOISE_PROBE / max(float(np.max(np.abs(delta) / (1.0 + np.abs(y)))), 1e-300), 1.0)
-    r_t = np.asarray(rj(jnp.asarray(y + t * delta, flat.dtype))[0], np.float64)
+    r_t = np.asarray(rj(jnp.asarray(y + t * delta, flat.dtype))[0])
+    precision, r_t = r_t.dtype, r_t.astype(np.float64)  # the residuals' own precision
     y_t = np.asarray(jnp.asarray(y + t * delta, flat.dtype), np.float64)  # the probe as rounded
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(J)) and np.all(np.isfinite(r_t))):
         return False
+    # (compared in that precision: r may carry a float64 rescaling's last bit)
+    if t == 1.0 and np.array_equal(r_t.astype(precision), np.asarray(r, np.float64).astype(precision)):
+        return True
     noise = float(np.sum((r_t - r - J @ (y_t - y)) ** 2))
     promised = float(np.sum((J @ delta) ** 2))
     return promised <= noise
@@ -355,9 +367,9 @@ def levenberg_marquardt(
     ``rtol``/``atol``) *and* the undamped Gauss–Newton step there is within
     ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees, m/s); or, after
     ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
-    round-off floor (:func:`at_round_off_floor`; this is tested at the first rejections too,
-    at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the floor ends at once
-    instead of spending five more trials); or after an accepted step that lowered the loss by
+    round-off floor (:func:`at_round_off_floor`; this is tested at the first rejection from
+    each accepted point too, at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the
+    floor ends at once instead of spending five more trials); or after an accepted step that lowered the loss by
     less than :data:`CREEP` (relative) and than the linear model predicted, at such a
     stationary point. A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
@@ -480,9 +492,10 @@ def levenberg_marquardt(
         # from a minimum; and at the loss's numerical floor the region shrinks without the test
         # ever passing. Both end here: a stationary point only if the undamped Gauss-Newton step
         # is within tolerance or promises less than the loss's round-off noise.
-        if (0 < since_accept < MAX_REJECTED_STEPS or (warm and iterations == 1)) and floor_checks < MAX_FLOOR_CHECKS:
+        if (since_accept == 1 or (warm and iterations == 1)) and floor_checks < MAX_FLOOR_CHECKS:
             # a rejected trial at the loss's round-off floor: no step can be told from noise,
-            # so waiting for more rejections would only spend rollouts
+            # so waiting for more rejections would only spend rollouts (tested once per
+            # accepted point: the probe from the same point along the same step repeats itself)
             t_check = time.perf_counter()
             at_y = (r / scale, J / scale)
             delta, _ = _gauss_newton_from(*at_y, y, rtol, bounds)
