@@ -10,14 +10,16 @@ at 8 particles per cell; 56^3 grid) and times, after compilation:
 
 and the compile time of each. ``--fit`` also runs the whole staged identification (from
 tracks, or with ``--fit-from silhouettes`` from the 11 views' masks and colours, weighted as
-in the sysid benchmark's silhouette cases). Prints one JSON line.
+in the sysid benchmark's silhouette cases; `--scan`: the log10 parameters' starting
+decades scanned first, as `jaxmpm identify` does). Prints one JSON line.
 
-    python benchmarks/sysid/timing_10k.py [--substeps 100] [--fit | --fit-only] [--fit-from silhouettes]
+    python benchmarks/sysid/timing_10k.py [--substeps 100] [--fit | --fit-only] [--fit-from silhouettes] [--scan]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import resource
@@ -46,6 +48,9 @@ def main() -> None:
     parser.add_argument("--fit-only", action="store_true", help="only the forward rollout and the identification")
     parser.add_argument("--no-images", action="store_true")
     parser.add_argument("--fit-from", choices=("tracks", "silhouettes"), default="tracks")
+    parser.add_argument("--scan", action="store_true",
+                        help="scan the log10 parameters' starting decades first, as `jaxmpm identify` does "
+                             "(jaxmpm.reconstruct.pipeline.SCAN_DECADES)")
     args = parser.parse_args()
 
     preset = Preset(dx=args.dx, substeps=args.substeps, frames=16, views=11, res=96, pixels=128, sets=1, max_steps=25)
@@ -108,7 +113,11 @@ def main() -> None:
         else:  # as the sysid benchmark's silhouette cases
             obs, config = images, FitConfig(weights={"silhouette": 1.0, "rgb": 0.1}, max_steps=preset.max_steps,
                                              num_pixels=preset.pixels, colors=None)
-        out["fit_from"] = args.fit_from
+        if args.scan:
+            from jaxmpm.reconstruct.pipeline import SCAN_DECADES
+
+            config = dataclasses.replace(config, scan=SCAN_DECADES)
+        out["fit_from"], out["scan"] = args.fit_from, config.scan
         t0, c0 = time.perf_counter(), time.process_time()
         result = fit(start.model, start.params, obs, names + ["velocity"], config, **fit_reporters(t0))
         out["fit_s"] = time.perf_counter() - t0

@@ -369,9 +369,9 @@ def levenberg_marquardt(
     ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
     round-off floor (:func:`at_round_off_floor`; this is tested at the first rejection from
     each accepted point too, at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the
-    floor ends at once instead of spending five more trials); or after an accepted step that lowered the loss by
-    less than :data:`CREEP` (relative) and than the linear model predicted, at such a
-    stationary point. A collapsed trust region away from both is
+    floor ends at once instead of spending five more trials); or after an accepted step that
+    lowered the loss by less than :data:`CREEP` (relative) and than the linear model
+    predicted, at such a stationary point. A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance.
