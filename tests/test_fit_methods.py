@@ -273,8 +273,8 @@ def test_a_gauss_newton_step_that_moves_no_residual_is_at_the_floor():
     """A Gauss-Newton step below the loss's resolution changes no residual: the floor. Measuring
     the noise as the remainder of the linear model for the step *as rounded* to float32 is wrong
     there: ``b``'s component does not round, so the remainder is smaller than the promise (the
-    8,000-particle fit's velocity, 1e-14 m/s near 0 beside 8e-8 m/s near -1, waited for six
-    rejected trials per stage so)."""
+    8,000-particle fit, whose velocity step was 1e-14 m/s near 0 beside 8e-8 m/s near -1,
+    waited there for six rejected trials per stage)."""
     import jax.flatten_util
     import jax.numpy as jnp
 
