@@ -323,8 +323,79 @@ def test_lm_probes_the_floor_once_per_accepted_point():
         return (A @ v - b) * (1.0 if near else 10.0)
 
     out = levenberg_marquardt(residuals, np.zeros(2), jacobian=lambda v: A, max_steps=20, rtol=1e-6, atol=1e-12)
-    assert not out.converged and out.timing["rejected_steps"] == 6
+    # five trials: the fifth lies within the step tolerance (1e-3), where the stop test runs
+    assert not out.converged and out.timing["rejected_steps"] == 5
     assert out.timing["floor_checks"] == 1 and float(np.max(np.abs(out.y))) == 0.0
+
+
+def _slab_residuals(lo, hi, height):
+    """Host residuals of ``v (1,)``, smooth with their minimum at 3, plus ``height`` on every
+    entry inside the slab ``lo < v < hi``: a jump of the loss (a contact switch) that the
+    Jacobian does not see, across the path from 0 to the minimum."""
+    A = np.array([[1.0], [0.5], [0.0]])
+
+    def residuals(v):
+        return A @ (v - 3.0) + (height if lo < float(v[0]) < hi else 0.0) * np.array([0.0, 0.0, 1.0])
+
+    return residuals, (lambda v: A)
+
+
+def test_lm_steps_over_a_jump_instead_of_shrinking_onto_it():
+    """A rejected trial whose rise does not shrink with the trust region met a jump of the loss:
+    the Gauss-Newton line search steps over it at the second rejection (not after six), and the
+    fit ends at the minimum beyond. On a smooth loss the rise shrinks and no line search runs."""
+    from jaxmpm.identify.solvers import MAX_REJECTED_STEPS, levenberg_marquardt
+
+    residuals, jacobian = _slab_residuals(0.05, 2.5, 5.0)
+    out = levenberg_marquardt(residuals, np.zeros(1), jacobian=jacobian, max_steps=20, rtol=1e-6, atol=1e-12)
+    assert out.converged and abs(float(out.y[0]) - 3.0) < 1e-6, out.message
+    assert out.timing["rejected_steps"] == 2 < MAX_REJECTED_STEPS and out.timing["escapes"] == 1
+
+    def smooth(v):  # strongly nonlinear: trials overshoot and are rejected, three in all
+        return np.array([np.exp(2.0 * v[0]) - np.exp(6.0)])
+
+    out = levenberg_marquardt(smooth, np.zeros(1), jacobian=lambda v: np.array([[2.0 * np.exp(2.0 * v[0])]]),
+                              max_steps=40, rtol=1e-6, atol=1e-12)
+    assert out.converged and abs(float(out.y[0]) - 3.0) < 1e-5, out.message
+    assert out.timing["rejected_steps"] >= 2 and out.timing["escapes"] == 0
+
+
+def test_lm_whose_trust_region_shrank_below_the_tolerance_stops_at_once():
+    """Every trial beyond ``v = 1e-3`` of the start is rejected (a cliff no line search clears):
+    once a rejected trial lies within the step tolerance (0.01 here) a smaller one cannot change
+    the verdict, so the stop test runs there, four rejections in, not after six; it reports a
+    stall, not convergence (the Gauss-Newton step, 3, is far beyond the tolerance)."""
+    from jaxmpm.identify.solvers import MAX_REJECTED_STEPS, levenberg_marquardt
+
+    residuals, jacobian = _slab_residuals(1e-3, np.inf, 100.0)
+    out = levenberg_marquardt(residuals, np.zeros(1), jacobian=jacobian, max_steps=20, rtol=0.01, atol=1e-12)
+    assert not out.converged and "stalled" in out.message, out.message
+    assert out.timing["rejected_steps"] == 4 < MAX_REJECTED_STEPS and float(out.y[0]) == 0.0
+
+
+@pytest.mark.x64
+def test_a_jump_within_the_round_off_probe_is_not_the_floor():
+    """Near the minimum of 200 residuals ``theta - 3`` (0.01 off, loss 0.02) the Gauss-Newton
+    step promises 0.02. A jump of 1 in every residual just inside the probe's reach makes the
+    probe's remainder 200: ten thousand times the loss, which no round-off about this point could
+    be (a repeat of the rollout here would not have found the loss it did). Not the floor — the
+    viscoplastic bunny's fit stopped 0.18 decades off, "converged", at such a jump."""
+    import jax.flatten_util
+    import jax.numpy as jnp
+
+    from jaxmpm.identify.solvers import at_round_off_floor, gauss_newton_step, residuals_and_jacobian
+
+    def residuals(y):
+        t = y["theta"]
+        return jnp.full(200, t - 3.0) + jax.lax.stop_gradient(jnp.where(t < 3.0098, 1.0, 0.0))
+
+    y = {"theta": jnp.asarray(3.01, jnp.float64)}
+    rj, _, _ = residuals_and_jacobian(residuals, y)
+    flat = jax.flatten_util.ravel_pytree(y)[0]
+    delta, small = gauss_newton_step(rj, flat, 1e-9)
+    probe = float(flat[0]) + 1e-4 / (abs(float(delta[0])) / 4.01) * float(delta[0])
+    assert not small and probe < 3.0098  # the probe crosses the jump
+    assert not at_round_off_floor(rj, flat, delta)
 
 
 @pytest.mark.x64

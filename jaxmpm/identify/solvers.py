@@ -66,6 +66,11 @@ FLOOR_GATE = 0.5
 #: model predicts (a linear or zero-residual fit, however large its irreducible loss) never
 #: creeps, so its tighter Cauchy test keeps deciding.
 CREEP = 1e-3
+#: A rejected trial whose loss rise is at least this fraction of the previous rejected trial's
+#: from the same point, although the trust region shrank by ``TRUST_SHRINK`` in between, met a
+#: jump of the loss (a contact or return-map switch: on a smooth loss the rise shrinks with the
+#: step); the Gauss–Newton line search (:func:`gauss_newton_escape`) then tries to step over it.
+JUMP = 0.5
 
 
 @dataclass
@@ -180,6 +185,10 @@ def _gauss_newton_from(r, J, y, rtol,
 #: Largest component of the probe step that measures a loss's round-off noise, relative to
 #: ``1 + |y|`` (optimisation units): far above float32's resolution, far below any fitted feature.
 NOISE_PROBE = 1e-4
+#: A probe's remainder above this multiple of the loss is not round-off noise but a jump (a
+#: contact switch within the probe): at a pure round-off floor the remainder of two independent
+#: noises is about twice the loss; across a jump it was 50 times (the viscoplastic bunny).
+JUMP_NOISE = 4.0
 
 
 def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
@@ -217,7 +226,9 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
         return True
     noise = float(np.sum((r_t - r - J @ (y_t - y)) ** 2))
     promised = float(np.sum((J @ delta) ** 2))
-    return promised <= noise
+    # a remainder many times the loss itself is a jump of the loss within the probe, not noise
+    # about this point (a repeat of the rollout here could not have found the loss it did)
+    return promised <= noise <= JUMP_NOISE * float(np.sum(np.asarray(r, np.float64) ** 2))
 
 
 def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None,
@@ -425,7 +436,7 @@ def levenberg_marquardt(
     y = np.asarray(flat0, np.float64)  # the last accepted point ...
     r = J = None  # ... its scaled residuals and Jacobian (None before the first evaluation)
     y_eval, evaluated = y, (r_start * scale, J_start)  # the trial point (and its evaluation, when known)
-    step_size, first, since_accept = 1.0, True, 0
+    step_size, first, since_accept, last_rise, jump_tried = 1.0, True, 0, None, False
     D = None  # the damping's diagonal scaling (None: the identity)
     losses = [f0]
     converged, stalled, succeeded, verdict, iterations = False, False, False, "rough", 0
@@ -451,7 +462,7 @@ def levenberg_marquardt(
                 accept = accept and predicted < 0
             good = bool(change < TRUST_HIGH * predicted and predicted < 0)
         step_size *= (TRUST_GROW if good else 1.0) if accept else TRUST_SHRINK
-        crept = False
+        crept = collapsed = jump = False
         if accept:
             r_prev = np.zeros_like(r_e) if r is None else r
             # (a step the linear model predicted, "good", is the fast phase: it never creeps)
@@ -461,9 +472,14 @@ def levenberg_marquardt(
                 succeeded = succeeded or float(r @ r) - f_e < ftol * float(r @ r)
             if not first:
                 losses.append(f_e / scale**2)
-            y, r, J, since_accept = y_eval, r_e, matrix(J_e) * scale, 0
+            y, r, J, since_accept, last_rise, jump_tried = y_eval, r_e, matrix(J_e) * scale, 0, None, False
         else:
             succeeded, since_accept, rejected = False, since_accept + 1, rejected + 1
+            collapsed = bool(np.all(np.abs(y_eval - y) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+            rise = f_e - float(r @ r)
+            # the trust region shrank, the rise did not: a jump lies closer than the smaller step
+            jump = not jump_tried and last_rise is not None and rise > 0 and rise >= JUMP * last_rise
+            last_rise = rise if np.isfinite(rise) else None
         first = False
         if scaled and D is None:  # the Jacobian's column norms at the start (the scaled residuals')
             norms = np.linalg.norm(J, axis=0)
@@ -507,7 +523,8 @@ def levenberg_marquardt(
                 at_floor = converged = True
                 break
             checks_s += time.perf_counter() - t_check
-        if succeeded or since_accept >= MAX_REJECTED_STEPS:
+        stop_test = succeeded or since_accept >= MAX_REJECTED_STEPS or collapsed
+        if stop_test or (jump and escapes < MAX_ESCAPES):
             t_check = time.perf_counter()
             flat = jnp.asarray(y, dtype)
             at_y = (r / scale, J / scale)
@@ -517,7 +534,10 @@ def levenberg_marquardt(
                 escapes += 1
                 y_eval, r, J, at_y = np.asarray(found[0], np.float64), None, None, None
                 losses.append(found[1])
-                step_size, first = 1.0, True  # a fresh trust region at the better point
+                step_size, first, last_rise = 1.0, True, None  # a fresh trust region at the better point
+                continue
+            if not stop_test:  # the jump is not to be stepped over: the trust region goes on shrinking
+                jump_tried = True  # (the same line search is not tried again from this point)
                 continue
             stalled = not succeeded
             converged = verdict in STATIONARY
