@@ -179,7 +179,13 @@ def _gauss_newton_from(r, J, y, rtol,
         return None, False
     solve = lambda A, b, free=None: np.linalg.lstsq(A, -b, rcond=None)[0]  # noqa: E731
     delta = solve(J, r) if bounds is None else _projected(solve, J, r, y, bounds) - y
-    return delta, bool(np.all(np.abs(delta) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+    return delta, within_tolerance(delta, y, rtol)
+
+
+def within_tolerance(step: np.ndarray, y: np.ndarray, rtol: float) -> bool:
+    """Whether every component of ``step (P,)`` at ``y (P,)`` is within ``max(rtol, 1e-3) (1 + |y|)``
+    (optimisation units: decades, degrees, m/s): the precision every LM stop test asks for."""
+    return bool(np.all(np.abs(step) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
 
 
 #: Largest component of the probe step that measures a loss's round-off noise, relative to
@@ -233,7 +239,8 @@ def at_round_off_floor(rj, flat, delta, r=None, J=None) -> bool:
 
 def gauss_newton_escape(loss_of, rj, flat, f, rtol, r=None, J=None,
                         bounds: tuple[np.ndarray, np.ndarray] | None = None):
-    """After ``MAX_REJECTED_STEPS`` rejected trust-region steps: is this a stationary point?
+    """After ``MAX_REJECTED_STEPS`` rejected trust-region steps, a rejected one within the step
+    tolerance or one that met a jump of the loss (:data:`JUMP`): is this a stationary point?
 
     A float32 MPM loss is rough on small scales (return-map branches, contact switching), so
     the trust region can collapse far from a minimum: the local slope it sees disagrees with
@@ -275,7 +282,7 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     n = f"{iterations} iteration{'s' * (iterations != 1)}"
     return {
         "converged": f"converged in {n}",
-        "stationary": (f"converged in {n} (the last {MAX_REJECTED_STEPS} trial steps could not "
+        "stationary": (f"converged in {n} (the last trial steps could not "
                        "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
                        "at this precision)"),
         "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than "
@@ -377,14 +384,16 @@ def levenberg_marquardt(
     Converged when the Cauchy test passes (a small step and a small change of the residuals,
     ``rtol``/``atol``) *and* the undamped Gauss–Newton step there is within
     ``max(rtol, 1e-3) (1 + |y|)`` in optimisation units (decades, degrees, m/s); or, after
-    ``MAX_REJECTED_STEPS`` rejected steps, at such a stationary point or at the loss's
+    ``MAX_REJECTED_STEPS`` rejected steps (or a rejected step itself within that tolerance: a
+    smaller trust region could not change the verdict), at such a stationary point or at the loss's
     round-off floor (:func:`at_round_off_floor`; this is tested at the first rejection from
     each accepted point too, at most ``MAX_FLOOR_CHECKS`` times a stage, so that a stage at the
     floor ends at once instead of spending five more trials); or after an accepted step that
     lowered the loss by less than :data:`CREEP` (relative) and than the linear model
     predicted, at such a stationary point. A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
-    most ``MAX_ESCAPES`` times). At the iteration cap it has converged only if the Gauss–Newton
+    most ``MAX_ESCAPES`` times), and so is a jump of the loss (:data:`JUMP`: the rise of a
+    rejected trial did not shrink with the trust region), at once. At the iteration cap it has converged only if the Gauss–Newton
     step is within tolerance.
 
     With bounds, every step (damped, Gauss–Newton, escape) is taken with the active set of
@@ -475,7 +484,7 @@ def levenberg_marquardt(
             y, r, J, since_accept, last_rise, jump_tried = y_eval, r_e, matrix(J_e) * scale, 0, None, False
         else:
             succeeded, since_accept, rejected = False, since_accept + 1, rejected + 1
-            collapsed = bool(np.all(np.abs(y_eval - y) <= max(rtol, 1e-3) * (1.0 + np.abs(y))))
+            collapsed = within_tolerance(y_eval - y, y, rtol)  # a smaller region cannot change the verdict
             rise = f_e - float(r @ r)
             # the trust region shrank, the rise did not: a jump lies closer than the smaller step
             jump = not jump_tried and last_rise is not None and rise > 0 and rise >= JUMP * last_rise
@@ -536,7 +545,7 @@ def levenberg_marquardt(
                 losses.append(found[1])
                 step_size, first, last_rise = 1.0, True, None  # a fresh trust region at the better point
                 continue
-            if not stop_test:  # the jump is not to be stepped over: the trust region goes on shrinking
+            if not stop_test and verdict not in STATIONARY:  # not to be stepped over: the region shrinks on
                 jump_tried = True  # (the same line search is not tried again from this point)
                 continue
             stalled = not succeeded
