@@ -393,8 +393,8 @@ def levenberg_marquardt(
     predicted, at such a stationary point. A collapsed trust region away from both is
     escaped by a line search along the Gauss–Newton step (:func:`gauss_newton_escape`, at
     most ``MAX_ESCAPES`` times), and so is a jump of the loss (:data:`JUMP`: the rise of a
-    rejected trial did not shrink with the trust region), at once. At the iteration cap it has converged only if the Gauss–Newton
-    step is within tolerance.
+    rejected trial did not shrink with the trust region), at once. At the iteration cap it has
+    converged only if the Gauss–Newton step is within tolerance.
 
     With bounds, every step (damped, Gauss–Newton, escape) is taken with the active set of
     :func:`_projected` (parameters pinned on the bounds they would cross), so the stop tests
@@ -543,7 +543,7 @@ def levenberg_marquardt(
                 escapes += 1
                 y_eval, r, J, at_y = np.asarray(found[0], np.float64), None, None, None
                 losses.append(found[1])
-                step_size, first, last_rise = 1.0, True, None  # a fresh trust region at the better point
+                step_size, first = 1.0, True  # a fresh trust region at the better point (accepted: resets the rest)
                 continue
             if not stop_test and verdict not in STATIONARY:  # not to be stepped over: the region shrinks on
                 jump_tried = True  # (the same line search is not tried again from this point)
