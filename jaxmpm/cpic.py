@@ -794,19 +794,25 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     if opposed:
         cos = jnp.einsum("ind,jnd->ijn", nodes.normal, nodes.normal)  # (K, K, N)
         same = same_face_fraction(cos) * w[None]  # [i, j]: node j's weight on node i's face
-        face = jnp.sum(same * carried[None], axis=1) / jnp.maximum(jnp.sum(same, axis=1), jnp.finfo(w.dtype).tiny)
+        face = _safe_ratio(jnp.sum(same * carried[None], axis=1), jnp.sum(same, axis=1))
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
         live = nodes.affine & (w > 0) & jnp.isfinite(key)
         top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
-        p = p / jnp.maximum(jnp.sum(p, axis=0), jnp.finfo(w.dtype).tiny)
+        p = _safe_ratio(p, jnp.sum(p, axis=0))
         w = w * jnp.sum(jnp.where(cos >= OPPOSED_COS, p[:, None], 0.0), axis=0)
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
     snrm = jnp.sum(w[..., None] * nodes.normal, axis=0)
     near = sw > 0
     return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx), _safe_normalize(snrm), near
+
+
+def _safe_ratio(a, b):
+    """``a / b`` where ``b > 0``, else 0, with finite tangents and cotangents everywhere."""
+    ok = b > 0
+    return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
 
 
 def same_face_fraction(cos):
@@ -843,7 +849,7 @@ def side_bits(nodes: NodeSample, phi, normal, dx: float):
     flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0))
     shifts = jnp.arange(affine.shape[0], dtype=jnp.int32)[:, None]
     # distinct powers of two: their sum is their bitwise or
-    bits = tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0) for f in flags)
+    bits = tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0, dtype=jnp.int32) for f in flags)
     return bits + (opposed * behind, opposed * (1.0 - behind))
 
 

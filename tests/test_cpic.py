@@ -14,7 +14,7 @@ from jaxmpm.colliders import Box, Plane
 from jaxmpm.cpic import GHOST_WEIGHT_MIN, CollisionField, ghost_mean_offset
 from jaxmpm.errors import SceneError
 from jaxmpm.fit import FitConfig, fit
-from jaxmpm.identify import set_param
+from jaxmpm.identify import resolve_name, set_param
 from jaxmpm.model import Model
 from jaxmpm.observe import Observation
 from jaxmpm.scene import load_scene
@@ -401,11 +401,11 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
     particle's surface plane changes as the plane turns with the particle. Penetrated, the face
     its signed distance is measured from switches between the ring's facets: with a hard choice
     of that face (made by a single node, of negligible weight where its carried value is least
-    accurate) the signed distance jumped by a tenth of a cell here (on the scaled bunny a
+    accurate) the signed distance jumped by 0.07 cells here (on the scaled bunny a
     hundredth, 7 cm/s in the velocity: docs/benchmark_sysid.md). Around the plate's end the top
     and bottom faces are opposed and the end face is neither. Ramped and soft, neighbouring
     positions give neighbouring signed distances and velocities, and the signed distance is the
-    one the particle has (round the plate's end, between a fifth of a cell and its distance)."""
+    one the particle has (round the plate's end, between a tenth of a cell and its distance)."""
     import importlib
 
     sim = importlib.import_module("jaxmpm.step")
@@ -446,3 +446,79 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
     assert np.abs(np.diff(phi)).max() < 3 * spacing, np.abs(np.diff(phi)).max() / spacing
     steps = np.linalg.norm(np.diff(v, axis=0), axis=-1)
     assert steps.max() < 0.02, (steps.max(), np.median(steps))  # 1/800 of the sweep moves it < 2 cm/s
+
+
+@pytest.mark.x64
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kind", ["ring", "plate"])
+def test_derivatives_at_a_thin_collider_match_central_differences(dim, kind, tmp_path):
+    """Forward- and reverse-mode derivatives of one step's velocity with respect to a particle's
+    position, where the soft choice of the face and the ramped opposed tests act (a tenth of a
+    cell inside the ring's outer face; 0.6 cells round the plate's end), equal float64 central
+    differences; a zero-weight node or face once made the tangents NaN (the fits' Jacobians)."""
+    import importlib
+
+    sim = importlib.import_module("jaxmpm.step")
+    spec, dx = _thin_collider_spec(dim, kind, tmp_path)
+    scene = load_scene(spec, dtype=jnp.float64)
+    model, params, state = sim._start(scene.model, scene.params, None)
+    state = eqx.tree_at(lambda s: s.tag, state, jnp.ones_like(state.tag))
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 7) if kind == "plate" else np.linspace(0.1, 0.4, 7)
+    radial = np.stack([np.cos(angles), np.sin(angles)], -1)
+    tangent = np.stack([-np.sin(angles), np.cos(angles)], -1)
+    if dim == 3:
+        radial = np.stack([radial[:, 0], np.zeros_like(angles), radial[:, 1]], -1)
+        tangent = np.stack([tangent[:, 0], 0.3 * np.ones_like(angles), tangent[:, 1]], -1)
+    centre = np.full(dim, 0.5) + (0.01 * dx if kind == "plate" else 0.0)
+    positions = centre + (0.6 * dx if kind == "plate" else 3.9 * dx) * radial
+
+    def velocity(p):
+        s = eqx.tree_at(lambda s: (s.x, s.v), state, (state.x.at[0].set(p), state.v.at[0].set(-jnp.ones(dim))))
+        return sim.step(model, params, s).v[0]
+
+    h = 1e-8
+
+    @jax.jit
+    @jax.vmap
+    def derivatives(p, d):
+        forward = jax.jvp(velocity, (p,), (d,))[1]
+        central = (velocity(p + h * d) - velocity(p - h * d)) / (2 * h)
+        reverse = jax.grad(lambda q: jnp.sum(velocity(q)))(p) @ d
+        return forward, central, reverse
+
+    forward, central, reverse = (np.asarray(a) for a in derivatives(jnp.asarray(positions), jnp.asarray(tangent)))
+    assert np.all(np.isfinite(forward)) and np.all(np.isfinite(reverse))
+    assert np.abs(forward).max() > 1.0  # the velocity does depend on the position here
+    np.testing.assert_allclose(forward, central, rtol=1e-4, atol=1e-6)  # central's round-off: 1e-16 / h
+    np.testing.assert_allclose(reverse, forward.sum(axis=1), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.x64
+@pytest.mark.parametrize("dim", [2, 3])
+def test_jacobian_of_a_fall_onto_a_thin_plate_matches_central_differences(dim, tmp_path):
+    """The forward-mode derivative a fit's velocity stage takes — of every particle's final
+    position with respect to the body's initial vertical speed — through a block landing on a
+    plate 0.3 cells thick (most particles far from it, with no affine node): finite, and equal
+    to float64 central differences. A zero-over-zero in the soft choice of the face made it NaN
+    for every particle at the first substep (sysid fits stopped on "unstable trial points")."""
+    spec, dx = _thin_collider_spec(dim, "plate", tmp_path)
+    lo = [0.3] + [0.5 + 0.5 * dx] * (dim - 1)
+    hi = [0.45] + [0.5 + 3.5 * dx] * (dim - 1)
+    if dim == 3:
+        lo[1], hi[1] = 0.4, 0.55
+    spec["bodies"][0].update(lo=lo, hi=hi, velocity=[0.0, -1.0] + [0.0] * (dim - 2))
+    spec.update(frames=2, frame_dt=0.012, substeps=30)
+    scene = load_scene(spec, dtype=jnp.float64)
+    assert scene.model.fields[0].thin
+
+    path = resolve_name(scene.model, scene.params, "velocity")
+    v0 = scene.params["bodies"][0]["velocity"]
+
+    def final_positions(speed):
+        return simulate(scene.model, set_param(scene.params, path, v0.at[1].set(-speed))).x[-1]
+
+    h = 1e-7
+    forward = np.asarray(jax.jit(lambda s: jax.jvp(final_positions, (s,), (jnp.ones(()),))[1])(jnp.asarray(1.0)))
+    central = np.asarray((final_positions(1.0 + h) - final_positions(1.0 - h)) / (2 * h))
+    assert np.all(np.isfinite(forward))
+    np.testing.assert_allclose(forward, central, rtol=1e-4, atol=1e-6)
