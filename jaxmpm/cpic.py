@@ -207,7 +207,7 @@ PLANE_RAMP = 0.5
 #: the ranking key. A node's role then never switches where its weight is not zero, so a
 #: rollout stays continuous in the particles' positions (hard tests made a fit's loss jump:
 #: docs/colliders.md, "Thin colliders").
-REFERENCE_TEMPERATURE = 0.01
+REFERENCE_TEMPERATURE = 1e-4
 #: In the ranking of :func:`surface_estimate` a face the particle lies behind ranks below every
 #: face in front of it within this many cells: its key drops by that much over its first
 #: ``BEHIND_DROP / BEHIND_SLOPE`` cells of depth.
@@ -666,7 +666,8 @@ class Contact(eqx.Module):
             penetrated; 0 where the particle is not near), ``(N,)`` per collider.
         normal: unit normal pointing to the particle's own side, ``(N, D)`` per collider.
         incompatible: bit ``o`` set where stencil node ``o`` lies on the other side, ``(N,)``
-            int32 per collider.
+            int32 per collider (thin fields and moving colliders: the opposed nodes behind
+            the particle's surface are in ``shares``, not here).
         owned: the incompatible bits attributed to collider ``c`` (those not already
             incompatible with an earlier collider), ``(N,)`` int32 per collider.
         any_incompatible: OR of ``incompatible``, ``(N,)`` int32.
