@@ -195,18 +195,9 @@ def build_collision_field(
 #: Two surfaces are *opposed* when their unit normals' dot product is below this (more than
 #: 120 degrees apart): the two faces of a thin solid, never the faces meeting at a box's edge.
 OPPOSED_COS = -0.5
-#: Where a test compares a node's normal with the particle's (:func:`side_bits`) or with
-#: another node's that the particle's position weighs (:func:`surface_estimate`'s ranking),
-#: it is ramped over this width of the cosine (:func:`opposed_fraction`,
-#: :func:`same_face_fraction`) ...
-COS_RAMP = 0.2
-#: ... the test whether an opposed node lies behind the particle's surface plane over this many
-#: cells of the node's distance to that plane (:func:`side_bits`) ...
-PLANE_RAMP = 0.5
-#: ... and the choice of the reference face in :func:`surface_estimate` over this many cells of
-#: the ranking key. A node's role then never switches where its weight is not zero, so a
-#: rollout stays continuous in the particles' positions (hard tests made a fit's loss jump:
-#: docs/colliders.md, "Thin colliders").
+#: The choice of the reference face in :func:`surface_estimate` is soft over this many cells of
+#: the ranking key: hard in practice (a hundredth of a cell made the Jacobians so steep that sand
+#: fits stopped at false stationary points; docs/benchmark_sysid.md, session 20).
 REFERENCE_TEMPERATURE = 1e-4
 #: In the ranking of :func:`surface_estimate` a face the particle lies behind ranks below every
 #: face in front of it within this many cells: its key drops by that much over its first
@@ -214,9 +205,10 @@ REFERENCE_TEMPERATURE = 1e-4
 BEHIND_DROP = 5.0
 BEHIND_SLOPE = 100.0
 #: Nodes whose normals are less than about 45 degrees apart propose one face between them
-#: (:func:`same_face_fraction`): the facets of a curved surface one cell apart, not the two
-#: walls of a crease or the faces at a box's edge.
+#: (:func:`same_face_fraction`, ramped over :data:`SAME_FACE_RAMP` of the cosine): the facets
+#: of a curved surface one cell apart, not the two walls of a crease or the faces at a box's edge.
 SAME_FACE_COS = 0.7
+SAME_FACE_RAMP = 0.2
 
 
 def has_opposed_neighbours(affinity: np.ndarray, normal: np.ndarray) -> bool:
@@ -666,18 +658,11 @@ class Contact(eqx.Module):
             penetrated; 0 where the particle is not near), ``(N,)`` per collider.
         normal: unit normal pointing to the particle's own side, ``(N, D)`` per collider.
         incompatible: bit ``o`` set where stencil node ``o`` lies on the other side, ``(N,)``
-            int32 per collider (thin fields and moving colliders: the opposed nodes behind
-            the particle's surface are in ``shares``, not here).
+            int32 per collider.
         owned: the incompatible bits attributed to collider ``c`` (those not already
             incompatible with an earlier collider), ``(N,)`` int32 per collider.
         any_incompatible: OR of ``incompatible``, ``(N,)`` int32.
         v_collider: collider surface velocity at the particle, ``(N, D)`` per collider.
-        keep, shares: ``None`` unless a collider is thin or moving; then the fractional form
-            of the bits, which such colliders need (their opposed nodes count in part,
-            :func:`side_bits`): ``keep (3^D, N)``, the share of each stencil node the particle
-            keeps (``prod_c (1 - f_c)``, ``f_c`` collider ``c``'s incompatible fraction, 1 on
-            its bits), and per collider its share ``f_c prod_{c' < c} (1 - f_c')``, so that
-            the shares and ``keep`` add up to 1.
     """
 
     tag: Int8[Array, "N K"]
@@ -688,28 +673,15 @@ class Contact(eqx.Module):
     owned: tuple[Int[Array, " N"], ...]
     any_incompatible: Int[Array, " N"]
     v_collider: tuple[Float[Array, "N D"], ...]
-    keep: Float[Array, "K N"] | None = None
-    shares: tuple[Float[Array, "K N"], ...] | None = None
 
-    def keep_mask(self) -> Bool[Array, "K N"] | Float[Array, "K N"]:
-        """Per stencil node (``(3^D, N)``, in the order of :func:`jaxmpm.state.stencil_offsets`)
-        whether the particle keeps it — bool, or the kept fraction where a collider is thin or
-        moving (apply either with :func:`masked`)."""
-        if self.keep is not None:
-            return self.keep
-        return ~bit_mask(self.any_incompatible, 3 ** self.normal[0].shape[-1])
+    def incompatible_mask(self) -> Bool[Array, "K N"]:
+        """Whether each stencil node is incompatible with the particle (for any collider),
+        ``(3^D, N)`` in the order of :func:`jaxmpm.state.stencil_offsets`."""
+        return bit_mask(self.any_incompatible, 3 ** self.normal[0].shape[-1])
 
-    def owned_mask(self, c: int) -> Bool[Array, "K N"] | Float[Array, "K N"]:
-        """Per stencil node, whether it is an incompatible node attributed to collider ``c`` —
-        bool, or the fraction attributed to it (apply with :func:`masked`), ``(3^D, N)``."""
-        if self.shares is not None:
-            return self.shares[c]
+    def owned_mask(self, c: int) -> Bool[Array, "K N"]:
+        """Whether each stencil node is an incompatible node attributed to collider ``c``, ``(3^D, N)``."""
         return bit_mask(self.owned[c], 3 ** self.normal[c].shape[-1])
-
-
-def masked(weight: Float[Array, " N"], mask: Bool[Array, " N"] | Float[Array, " N"]) -> Float[Array, " N"]:
-    """``weight`` where a bool ``mask`` is set (0 elsewhere), or times a fractional one."""
-    return jnp.where(mask, weight, 0.0) if mask.dtype == jnp.bool_ else mask * weight
 
 
 def bit_mask(bits: Int[Array, " N"], count: int) -> Bool[Array, "K N"]:
@@ -765,20 +737,17 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     particle may cross (ranking the largest first took the farther wall: sand went 0.29 dx into
     the scaled bunny instead of 0.17 dx).
 
-    The choice is soft, so that the estimate is continuous in the particle's position, and it
-    ranks faces, not single nodes (a node of negligible weight, whose carried value is the least
-    accurate, chose the face alone before). Node ``i`` proposes its face: the weighted mean
-    ``f_i`` of the values carried by the nodes whose normals are near its own
+    The choice ranks faces, not single nodes (a node of negligible weight, whose carried value
+    is the least accurate, chose the face alone before). Node ``i`` proposes its face: the
+    weighted mean ``f_i`` of the values carried by the nodes whose normals are near its own
     (:func:`same_face_fraction`). The face ranks by ``key_i = -f_i`` (``f_i >= 0``) or
     ``max(BEHIND_SLOPE f_i, f_i - BEHIND_DROP dx)`` (``f_i < 0``: below every face in front
     within 5 cells, then the largest first) and is the reference with probability ``p_i ∝
-    w_i exp(key_i / (REFERENCE_TEMPERATURE dx))`` (a node entering the stencil at zero weight
-    has no say); node ``j`` then keeps the share ``sum_i p_i [N_i·N_j >= OPPOSED_COS]`` of its
-    weight (a hard test, but between two nodes' fixed normals: only the ``p_i`` move with the
-    particle). Where one face ranks first by more than a tenth of a cell this is the hard
-    choice. What is left discontinuous: a face whose nodes all have little weight can rank
-    first as soon as they enter (a face of one node, its normal more than ~45 degrees from
-    every other node's).
+    w_i exp(key_i / (REFERENCE_TEMPERATURE dx))`` (a node of zero weight has no say); node ``j``
+    then keeps the share ``sum_i p_i [N_i·N_j >= OPPOSED_COS]`` of its weight (a test between
+    two nodes' fixed normals: only the ``p_i`` move with the particle). At the temperature used
+    this is the hard choice except within ~1e-4 cells of a tie: where the ranking switches
+    between two faces, the estimate still jumps.
 
     Arguments:
         nodes: the particle's nodes, ``K`` of them.
@@ -819,39 +788,28 @@ def _safe_ratio(a, b):
 def same_face_fraction(cos):
     """How much a node whose unit normal makes cosine ``cos`` with another's counts as on the
     same face (:func:`surface_estimate`'s ranking): 0 up to :data:`SAME_FACE_COS`, 1 from
-    ``SAME_FACE_COS + COS_RAMP``, linear between."""
-    return jnp.clip((cos - SAME_FACE_COS) / COS_RAMP, 0.0, 1.0)
+    ``SAME_FACE_COS + SAME_FACE_RAMP``, linear between."""
+    return jnp.clip((cos - SAME_FACE_COS) / SAME_FACE_RAMP, 0.0, 1.0)
 
 
-def opposed_fraction(cos):
-    """How much a node whose unit normal makes cosine ``cos`` with the particle's counts as
-    *opposed* to it (:func:`side_bits`): 1 up to :data:`OPPOSED_COS`, 0 from ``OPPOSED_COS +
-    COS_RAMP``, linear between. The hard test's opposed nodes are opposed in full."""
-    return jnp.clip((OPPOSED_COS + COS_RAMP - cos) / COS_RAMP, 0.0, 1.0)
-
-
-def side_bits(nodes: NodeSample, phi, normal, dx: float):
+def side_bits(nodes: NodeSample, phi, normal):
     """Per particle, bit ``o`` (stencil node ``o``) set where the node is affine on the ``+``
-    side and on the ``-`` side (two ``(N,)`` int32), and how much each node is an *opposed*
-    node (its normal opposed to the particle's, :func:`opposed_fraction`) lying behind / in
-    front of the particle's surface (the plane of signed distance ``phi`` and ``+`` normal
-    ``normal``), two ``(K, N)`` fractions in [0, 1].
+    side, on the ``-`` side, and where it is an *opposed* node (its normal opposed to the
+    particle's, :data:`OPPOSED_COS`) lying behind / in front of the particle's surface (the
+    plane of signed distance ``phi`` and ``+`` normal ``normal``): four ``(N,)`` int32.
 
     A node behind the surface a particle is near belongs to the collider for that particle,
     whatever its own side: below a plate thinner than the stencil the nodes are on the
     plate's outside like the nodes above, and only the surface the particle is near tells
-    them apart. Both tests are ramped (:data:`COS_RAMP`; :data:`PLANE_RAMP` cells across the
-    plane), so that a node's share changes continuously as the particle moves.
+    them apart.
     """
     affine = nodes.affine
-    opposed = jnp.where(affine, opposed_fraction(row_dot(nodes.normal, normal[None])), 0.0)
-    ahead = phi[None] + row_dot(normal[None], nodes.offset)  # the node's distance to the particle's plane
-    behind = jnp.clip(0.5 - ahead / (PLANE_RAMP * dx), 0.0, 1.0)
-    flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0))
+    opposed = affine & (row_dot(nodes.normal, normal[None]) < OPPOSED_COS)
+    ahead = phi[None] + row_dot(normal[None], nodes.offset)
+    flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
     shifts = jnp.arange(affine.shape[0], dtype=jnp.int32)[:, None]
     # distinct powers of two: their sum is their bitwise or
-    bits = tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0, dtype=jnp.int32) for f in flags)
-    return bits + (opposed * behind, opposed * (1.0 - behind))
+    return tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0, dtype=jnp.int32) for f in flags)
 
 
 def _corner_lookup(grid: Grid, table, x, opposed: bool):
@@ -886,7 +844,7 @@ def _stencil_lookup(grid: Grid, st: Stencil, x, table):
     fields, whose opposed nodes are told apart by the particle's surface."""
     phi, nrm, near = _corner_lookup(grid, table, x, opposed=True)
     index, weight, dpos = stencil_terms(grid, st)
-    return side_bits(_node_sample(weight, table[index], grid.dx * dpos), phi, nrm, grid.dx), phi, nrm, near
+    return side_bits(_node_sample(weight, table[index], grid.dx * dpos), phi, nrm), phi, nrm, near
 
 
 def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, collider, time):
@@ -907,7 +865,7 @@ def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, col
     sample = _node_sample(weight, row, Xi - Xp[None])
     nodes = eqx.tree_at(lambda s: s.node_sd, sample, row[..., 0] + row_dot(sample.normal, Xi - Xj))
     phi, nrm, near = surface_estimate(nodes, dx)
-    return side_bits(nodes, phi, nrm, dx), phi, rows_times(nrm, rot.T), near
+    return side_bits(nodes, phi, nrm), phi, rows_times(nrm, rot.T), near
 
 
 def gather_contact(
@@ -935,10 +893,9 @@ def gather_contact(
       stops tunnelling: a particle pushed slightly through the surface keeps its side) and
       cleared when it leaves the band.
     * **Compatibility**: a stencil node is incompatible when it is affine and on the side
-      opposite to the particle's tag, or (thin fields, moving colliders) in part when its
-      normal is opposed to the particle's and it lies behind the particle's own surface
-      (:func:`side_bits`, ramped): the nodes past a plate thinner than the stencil. Such
-      colliders give the :class:`Contact` its fractional ``keep`` and ``shares``.
+      opposite to the particle's tag, or (thin fields, moving colliders) when its normal is
+      opposed to the particle's and it lies behind the particle's own surface
+      (:func:`side_bits`): the nodes past a plate thinner than the stencil.
 
     Thin static fields (:attr:`CollisionField.thin`) and moving colliders read all 3^D
     stencil nodes (moving ones in their rest frame, ``_moving_lookup``, normals rotated back
@@ -954,13 +911,13 @@ def gather_contact(
     n = x.shape[0]
     base = flat_index(grid.shape, st.base)
     new_tag = jax.lax.stop_gradient(tag)
-    phis, normals, incs, owned, vcs, softs = [], [], [], [], [], []
+    phis, normals, incs, owned, vcs = [], [], [], [], []
     any_inc = jnp.zeros((n,), jnp.int32)
     for k in index:
         col, field = colliders[k], fields[k]
         table = field.rows.astype(dtype)
         moving = bool(getattr(col, "moving", False))
-        behind = ahead = None  # (K, N) fractions of the opposed nodes (thin and moving fields)
+        behind = ahead = None
         if moving or not field.on_grid(grid):
             (plus, minus, behind, ahead), phi, nrm, measured = _moving_lookup(grid, st, x, field, table, col, time)
         elif field.thin:
@@ -978,10 +935,8 @@ def gather_contact(
         new_tag = new_tag.at[:, k].set(t)
         tf = t.astype(dtype)
         inc = jnp.where(t > 0, minus, jnp.where(t < 0, plus, 0))
-        soft = None
-        if behind is not None:  # opposed nodes behind the particle's own surface, in part
-            soft = jnp.where(t[None] > 0, behind, jnp.where(t[None] < 0, ahead, 0.0).astype(dtype))
-        softs.append(soft)
+        if behind is not None:  # opposed nodes behind the particle's own surface
+            inc = inc | jnp.where(t > 0, behind, jnp.where(t < 0, ahead, 0))
         phis.append(tf * phi)
         normals.append(tf[:, None] * nrm)
         incs.append(inc)
@@ -989,16 +944,6 @@ def gather_contact(
         any_inc = any_inc | inc
         vcs.append(col.velocity_at(x, time) if moving else jnp.zeros_like(x))
     stop = jax.lax.stop_gradient
-    keep = shares = None
-    if any(f is not None for f in softs):  # the fractional form: f_c = max(bits, soft share)
-        k = 3 ** x.shape[1]
-        keep, shares = jnp.ones((k, n), dtype), []
-        for inc, soft in zip(incs, softs):
-            f = stop(bit_mask(inc, k).astype(dtype))
-            f = f if soft is None else jnp.maximum(f, soft)
-            shares.append(keep * f)
-            keep = keep * (1.0 - f)
-        shares = tuple(shares)
     contact = Contact(
         tag=stop(new_tag),
         index=index,
@@ -1008,8 +953,6 @@ def gather_contact(
         owned=tuple(stop(i) for i in owned),
         any_incompatible=stop(any_inc),
         v_collider=tuple(vcs),
-        keep=keep,
-        shares=shares,
     )
     return materialize(contact, jnp.isfinite(time))
 
@@ -1102,7 +1045,7 @@ def incompatible_moments(st: Stencil, contact: Contact):
         w_sum = jnp.zeros_like(st.fx[0])
         m_sum = [jnp.zeros_like(st.fx[0]) for _ in range(dim)]
         for o, offset in enumerate(stencil_offsets(dim)):
-            w = masked(offset_weight(st, offset), owned[o])
+            w = jnp.where(owned[o], offset_weight(st, offset), 0.0)
             w_sum = w_sum + w
             m_sum = [m + w * (k - f) for m, k, f in zip(m_sum, offset, st.fx)]
         weights.append(w_sum)

@@ -135,12 +135,12 @@ def p2g(
     # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
     columns = [grid.dx * affine[:, :, d] for d in range(dim)]
     base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
-    keep = None if contact is None else contact.keep_mask()
+    incompatible = None if contact is None else contact.incompatible_mask()
     rows = []
     for o, offset in enumerate(stencil_offsets(dim)):
         weight = offset_weight(st, offset)
-        if keep is not None:
-            weight = cpic.masked(weight, keep[o])
+        if incompatible is not None:
+            weight = jnp.where(incompatible[o], 0.0, weight)
         momentum = base_momentum
         for d, od in enumerate(offset):
             if od:
@@ -288,13 +288,13 @@ def g2p(
     n, dim = st.num_particles, st.dim
     offsets = stencil_offsets(dim)
     values = gather_rows(grid_v, stencil_index(grid, st))
-    keep = None if ghost is None else ghost.contact.keep_mask()
+    incompatible = None if ghost is None else ghost.contact.incompatible_mask()
     v = jnp.zeros((n, dim), grid_v.dtype)
     moments = [jnp.zeros((n, dim), grid_v.dtype) for _ in range(dim)]  # moments[d] = sum w v_o o_d
     for o, (offset, vo) in enumerate(zip(offsets, values)):
         weight = offset_weight(st, offset)
-        if keep is not None:
-            weight = cpic.masked(weight, keep[o])
+        if incompatible is not None:
+            weight = jnp.where(incompatible[o], 0.0, weight)
         wv = weight[:, None] * vo
         v = v + wv
         moments = [m + od * wv if od else m for m, od in zip(moments, offset)]

@@ -395,24 +395,22 @@ def _thin_collider_spec(dim: int, kind: str, folder) -> tuple[dict, float]:
     pytest.param("in ring", marks=pytest.mark.xfail(strict=True, reason=(
         "known defect: the choice of the reference face is hard in practice (cpic.REFERENCE_TEMPERATURE "
         "= 1e-4 cells; at 1e-2, which passes this, sand fits stopped at false stationary points): a "
-        "penetrated particle's velocity still jumps where the face switches between facets"))),
+        "penetrated particle's velocity jumps where the face switches between facets (docs/colliders.md)"))),
     "around plate end",
 ])
 def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim, path, tmp_path):
     """One particle moving towards a collider thinner than the stencil, swept along a path
     (801 positions, with the side tag of a particle that came from outside): around a ring
     half a cell outside its outer face; a tenth of a cell inside that face (penetrated); around
-    a thin plate's end at 0.6 cells from it, from above to below.
+    a thin plate's end at 0.6 cells from it, from above to below. Neighbouring positions must
+    give neighbouring signed distances and velocities, and the signed distance the one the
+    particle has (round the plate's end, between a tenth of a cell and its distance).
 
-    Outside, the far face's nodes in the stencil are *opposed*, and whether they lie behind the
-    particle's surface plane changes as the plane turns with the particle. Penetrated, the face
-    its signed distance is measured from switches between the ring's facets: with a hard choice
-    of that face (made by a single node, of negligible weight where its carried value is least
-    accurate) the signed distance jumped by 0.07 cells here (on the scaled bunny a
-    hundredth, 7 cm/s in the velocity: docs/benchmark_sysid.md). Around the plate's end the top
-    and bottom faces are opposed and the end face is neither. Ramped and soft, neighbouring
-    positions give neighbouring signed distances and velocities, and the signed distance is the
-    one the particle has (round the plate's end, between a tenth of a cell and its distance)."""
+    Penetrated, the face its signed distance is measured from switches between the ring's
+    facets: chosen by a single node (of negligible weight where its carried value is least
+    accurate) the signed distance jumped by 0.07 cells here; chosen among faces it no longer
+    does, but the velocity still jumps where the choice switches (a strict xfail). Around the
+    plate's end the top and bottom faces are opposed and the end face is neither."""
     import importlib
 
     sim = importlib.import_module("jaxmpm.step")
