@@ -458,9 +458,9 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
 @pytest.mark.parametrize("kind", ["ring", "plate"])
 def test_derivatives_at_a_thin_collider_match_central_differences(dim, kind, tmp_path):
     """Forward- and reverse-mode derivatives of one step's velocity with respect to a particle's
-    position, where the soft choice of the face and the ramped opposed tests act (a tenth of a
-    cell inside the ring's outer face; 0.6 cells round the plate's end), equal float64 central
-    differences; a zero-weight node or face once made the tangents NaN (the fits' Jacobians)."""
+    position, where the choice of the reference face and the opposed-node tests act (a tenth of
+    a cell inside the ring's outer face; 0.6 cells round the plate's end), equal float64
+    central differences."""
     import importlib
 
     sim = importlib.import_module("jaxmpm.step")
