@@ -776,7 +776,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     sphi = jnp.sum(w * carried, axis=0)
     snrm = jnp.sum(w[..., None] * nodes.normal, axis=0)
     near = sw > 0
-    return jnp.where(near, sphi / jnp.where(near, sw, 1.0), 2.0 * dx), _safe_normalize(snrm), near
+    return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
 
 
 def _safe_ratio(a, b):

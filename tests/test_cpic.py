@@ -353,7 +353,7 @@ def test_sheet_of_gaussian_disks_holds_material_from_a_scene_file_and_from_pytho
 
 
 def _thin_collider_spec(dim: int, kind: str, folder) -> tuple[dict, float]:
-    """A collider thinner than the stencil and one particle far from it (dx = 0.05): a ring 0.3
+    """A collider thinner than the stencil and a small block far from it (dx = 0.05): a ring 0.3
     cells thick and 4 cells in outer radius about the domain's centre (a closed polygon band in
     2D, a trimesh annulus — a tube 6 cells tall along y — in 3D), or a plate 0.3 cells thick
     whose end is at the centre (a box). Returns the spec and dx."""

@@ -11,11 +11,11 @@ substep before (a jump, not the smooth growth of a parameter change). There it t
 the step is discontinuous in the parameters (the same state stepped with either) or in the
 state (the two states stepped with the same parameters), and, for the state, bisects the
 segment between the two states to the switch and prints the particle's CPIC quantities on
-either side of it (stencil base, signed distance, normal, incompatible bits, kept shares) and
-those of the particle whose contact changed most there. Where the velocity moves steadily
-along the segment (sampled at 65 points: no step above a quarter of the whole), the response
-is steep but continuous, as a contact's position correction gives: it says so and goes on. ``--not-thin`` rolls out with
-every thin collision field treated as a thick one.
+either side of it (stencil base, signed distance, normal, incompatible bits) and those of the
+particle whose contact changed most there. Where the velocity moves steadily along the segment
+(sampled at 65 points first: no step above a quarter of the whole), the response is steep but
+continuous, as a contact's position correction gives: it says so and goes on. ``--not-thin``
+rolls out with every thin collision field treated as a thick one.
 """
 
 from __future__ import annotations
@@ -53,21 +53,17 @@ def _contact(model, state, i):
     for k in range(0 if c is None else len(c.index)):
         out[f"collider {c.index[k]}"] = {"phi": float(c.phi[k][i]), "normal": np.round(np.asarray(c.normal[k][i]), 5).tolist(),
                                          "incompatible bits": int(c.incompatible[k][i]), "tag": int(c.tag[i, c.index[k]])}
-    if c is not None and c.keep is not None:  # the kept share of each stencil node (thin or moving fields)
-        out["kept"] = np.round(np.asarray(c.keep[:, i]), 4).tolist()
     return out
 
 
 def _most_changed(model, state_a, state_b) -> int:
-    """The particle whose contact data (signed distance, tag, bits, kept shares) differ most
-    between two states."""
+    """The particle whose contact data (signed distance, tag, bits) differ most between two
+    states."""
     ca, cb = (sim.gather_contact(model, compute_stencil(model.grid, s.x), s) for s in (state_a, state_b))
     change = np.zeros(state_a.x.shape[0])
     for k in range(0 if ca is None else len(ca.index)):
         change += np.abs(np.asarray(ca.phi[k] - cb.phi[k])) / model.grid.dx
         change += np.asarray(ca.incompatible[k] != cb.incompatible[k]) + np.asarray(ca.tag != cb.tag).any(axis=1)
-    if ca is not None and ca.keep is not None:
-        change += np.abs(np.asarray(ca.keep - cb.keep)).sum(axis=0)
     return int(change.argmax())
 
 
@@ -103,14 +99,6 @@ def main(argv=None) -> None:
             def at(t):
                 return eqx.tree_at(lambda s: s.x, sa, sa.x + t * (sb.x - sa.x))
 
-            lo, hi = 0.0, 1.0
-            v_lo = np.asarray(fa(at(lo)).v[i])
-            for _ in range(40):
-                mid = 0.5 * (lo + hi)
-                if np.linalg.norm(np.asarray(fa(at(mid)).v[i]) - v_lo) < 0.5 * in_state:
-                    lo = mid
-                else:
-                    hi = mid
             profile = np.stack([np.asarray(fa(at(t)).v[i]) for t in np.linspace(0.0, 1.0, 65)])
             largest = float(np.linalg.norm(np.diff(profile, axis=0), axis=1).max())
             if largest < 0.25 * in_state:  # no step: the velocity moves along the segment in small ones
@@ -119,6 +107,14 @@ def main(argv=None) -> None:
                 prev = dv.max()
                 sa, sb = na, nb
                 continue
+            lo, hi = 0.0, 1.0
+            v_lo = profile[0]
+            for _ in range(40):
+                mid = 0.5 * (lo + hi)
+                if np.linalg.norm(np.asarray(fa(at(mid)).v[i]) - v_lo) < 0.5 * in_state:
+                    lo = mid
+                else:
+                    hi = mid
             print(f"  switch between t = {lo:.12f} and {hi:.12f} of the segment between the two states")
             print(f"  before: {_contact(ma, at(lo), i)}")
             print(f"  after:  {_contact(ma, at(hi), i)}")
