@@ -6,12 +6,15 @@ A 2D elastic block (E = 3 kPa or ``--E``, dx = 9 mm, ppc 4: 1,452 particles) thr
 substeps, tracked with 1 mm noise; the block's bottom starts ``--height`` (0.1 m) above the
 floor; the data hide a gravity error (delta g = (0, -2) m/s^2 or ``--delta``, ``--hidden
 gravity``), Coulomb friction on the floor (``--hidden friction --friction 0.3``) or nothing
-(``--hidden none``, the control). `discover`
+(``--hidden none``, the control) or air drag in free flight (``--hidden drag --drag 0.3``:
+linear drag k1 in 1/s; with ``--frame-dt`` and ``--height`` chosen so that the block never
+lands, the case is smooth in the hidden effect and converged in dt). `discover`
 gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
 check). Prints the verdict, the cause, the held-out gain, the wall and CPU seconds.
 
     PYTHONPATH=. python benchmarks/discover_time.py [--hidden gravity|none] [--delta 1,0] [--json out.json]
         [--E 3e4 --velocity 0.5,0 --contact sticky]   # a case converged in dt (dt/2 moves it 7 mm)
+        [--hidden drag --frames 24 --substeps 250 --frame-dt 0.01667 --velocity 1,1.5]   # free flight
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ def scene_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--substeps", type=int, default=100)
     ap.add_argument("--height", type=float, default=0.1, help="the block's bottom above the floor, m")
+    ap.add_argument("--frame-dt", type=float, default=1.0 / 24.0, help="seconds between frames")
 
 
 def block_scene(args):
@@ -48,6 +52,7 @@ def block_scene(args):
     spec = block_spec(2, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
                       substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": args.contact},
                       lo=[0.2, 0.1 + args.height], hi=[0.4, 0.25 + args.height], velocity=velocity, ppc=4)
+    spec["frame_dt"] = args.frame_dt
     return load_scene(spec)
 
 
@@ -57,9 +62,10 @@ def main() -> None:
     from jaxmpm.observe import Observation
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--hidden", choices=("gravity", "friction", "none"), default="gravity")
+    ap.add_argument("--hidden", choices=("gravity", "friction", "drag", "none"), default="gravity")
     ap.add_argument("--delta", default="0,-2", help="the hidden gravity error, m/s^2 (x,y)")
     ap.add_argument("--friction", type=float, default=0.3, help="the floor's hidden Coulomb coefficient")
+    ap.add_argument("--drag", type=float, default=0.3, help="the hidden linear air drag k1, 1/s")
     scene_arguments(ap)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
@@ -69,7 +75,7 @@ def main() -> None:
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
     delta = [float(v) for v in args.delta.split(",")]
     hidden = {"gravity": {"gravity": {"delta": delta}}, "friction": {"collider_friction": {"floor": args.friction}},
-              "none": None}[args.hidden]
+              "drag": {"drag": {"linear": args.drag}}, "none": None}[args.hidden]
     truth = X.enable(m, p, ids, hidden)
     x = np.asarray(_rollout(m, truth, args.frames)[0].x, float)
     x = x + 1e-3 * np.random.default_rng(0).standard_normal(x.shape)
@@ -79,10 +85,13 @@ def main() -> None:
     t0, c0 = time.perf_counter(), time.process_time()
     result = discover(m, p, obs, progress=lambda line: print(f"  [{time.perf_counter() - t0:7.1f} s] {line}", flush=True))
     row = {"hidden": args.hidden, "delta": delta if args.hidden == "gravity" else None,
-           "friction": args.friction if args.hidden == "friction" else None, "height": args.height, "E": args.E, "velocity": velocity,
+           "friction": args.friction if args.hidden == "friction" else None,
+           "drag": args.drag if args.hidden == "drag" else None, "frame_dt": args.frame_dt, "height": args.height, "E": args.E, "velocity": velocity,
            "contact": args.contact, "frames": args.frames, "substeps": args.substeps, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
            "discrepancy": bool(result.discrepancy), "cause": result.cause, "causes": list(result.causes),
            "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,
+           "parameters": {k: np.asarray(v, float).tolist() for k, v in result.parameters.items()},
+           "refits": [c.id for c in result.candidates if c.refit],
            "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
     print(json.dumps(row))
     if args.json:

@@ -232,7 +232,8 @@ def cmd_discover(args) -> int:
     result = discover(
         scene.model, scene.params, obs, names=names, extensions=exts, holdout=args.holdout, top=args.top,
         min_gain=args.min_gain, alpha=args.alpha, max_extensions=args.max_extensions, max_iter=args.max_iter,
-        convergence=not args.no_convergence, noise_floor=args.noise, num_pixels=args.pixels, progress=say,
+        convergence=not args.no_convergence, noise_floor=args.noise, num_pixels=args.pixels, prune=not args.refit_all,
+        progress=say,
     )
     files = write_report(result, out, title=f"Discrepancy report: {Path(args.scene).name} vs {Path(args.observations).name}")
     print(result.verdict)
@@ -340,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--extensions", default=None, help="comma-separated extension ids to consider (default: all)")
     p.add_argument("--holdout", type=float, default=0.3, help="fraction of the latest observed times held out (default 0.3)")
     p.add_argument("--top", type=int, default=3, help="extensions refitted per greedy step (default 3)")
+    p.add_argument("--refit-all", action="store_true",
+                   help="refit the --top best whatever their scores, from both starts (default: only what can change "
+                        "the verdict; for silhouettes, where the score can understate an effect)")
     p.add_argument("--min-gain", type=float, default=0.1, help="smallest held-out gain kept (default 0.1)")
     p.add_argument("--alpha", type=float, default=0.05, help="level of the likelihood-ratio test (default 0.05)")
     p.add_argument("--max-extensions", type=int, default=3, help="most extensions added greedily (default 3)")

@@ -131,6 +131,10 @@ def default_parameters(model: Model) -> list[str]:
 # Module-level and keyed on the model's *structure* (equinox filter_jit), so every sequence,
 # candidate and refit with the same scene layout shares one compilation.
 
+#: The most tangents one forward-mode rollout carries (they share its primal); a Jacobian of
+#: more columns is split into chunks of equal size.
+JVP_BATCH = 8
+
 
 @eqx.filter_jit
 def _rollout(model, params, frames):
@@ -147,13 +151,21 @@ def _rollout_jvp(model, params, tangent, frames):
 
 
 @eqx.filter_jit
+def _rollout_jvps(model, params, tangents, frames):
+    """The rollout and its derivatives along ``tangents`` (params pytrees with a leading axis
+    ``(k, ...)``): one primal shared by the ``k`` tangent rollouts."""
+    return jax.vmap(lambda t: _rollout_jvp(model, params, t, frames), out_axes=(None, 0))(tangents)
+
+
+@eqx.filter_jit
 def _obs_eval(term, frames, t0):
     return term.residuals(frames, t0)
 
 
 @eqx.filter_jit
-def _obs_jvp(term, frames, t0, d_frames, dt0):
-    return jax.jvp(term.residuals, (frames, t0), (d_frames, dt0))
+def _obs_jvps(term, frames, t0, d_frames, dt0):
+    """The residuals' derivatives along the ``k`` tangents ``d_frames, dt0`` (leading axis)."""
+    return jax.vmap(lambda d, d0: jax.jvp(term.residuals, (frames, t0), (d, d0))[1])(d_frames, dt0)
 
 
 @dataclass
@@ -404,30 +416,44 @@ class _Problem:
         return np.where(self.groups.entry_group >= 0, r, 0.0)
 
     def jacobian(self, theta, cols) -> np.ndarray:
-        """Columns ``cols`` of the residual Jacobian (one forward-mode rollout each)."""
+        """Columns ``cols`` of the residual Jacobian ``(M, len(cols))``: per sequence, the
+        columns its parameters depend on, up to :data:`JVP_BATCH` tangents to a rollout sharing
+        one primal (chunks of one size, the last padded with zero tangents: one compiled
+        program per chunk size)."""
         theta = jnp.asarray(theta, _F())
         M = len(self.groups.entry_group)
         J = np.zeros((M, len(cols)))
-        for j, c in enumerate(cols):
-            e = jnp.zeros_like(theta).at[c].set(1.0)
-            blocks = []
-            for i, sd in enumerate(self.seqs):
-                if i in self.skip:  # held out entirely: no training rows
-                    blocks.append(np.zeros(sum(sd.sizes)))
-                    continue
-                p, tp = jax.jvp(lambda th, i=i: self.unpack(th, i), (theta,), (e,))
+        start = 0
+        for i, sd in enumerate(self.seqs):
+            rows = slice(start, start + sum(sd.sizes))
+            start = rows.stop
+            if i in self.skip:  # held out entirely: no training rows
+                continue
+            p = self.unpack(theta, i)
+            tangents, live = [], []
+            for j, c in enumerate(cols):
+                e = jnp.zeros_like(theta).at[c].set(1.0)
+                tp = jax.jvp(lambda th, i=i: self.unpack(th, i), (theta,), (e,))[1]
                 tp = jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
-                depends = any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp))
-                t0, dt0 = self._t0(p), self._t0(tp)
-                if not depends:
-                    blocks.append(np.zeros(sum(sd.sizes)))
-                    continue
+                if any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp)):
+                    tangents.append(tp)
+                    live.append(j)
+            if not live:
+                continue
+            t0 = self._t0(p)
+            chunks = -(-len(live) // JVP_BATCH)
+            size = -(-len(live) // chunks)
+            for k in range(0, len(live), size):
+                batch = tangents[k:k + size]
+                batch = batch + [jax.tree_util.tree_map(jnp.zeros_like, batch[0])] * (size - len(batch))  # padding
+                stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
                 self.jvps += 1
-                frames, d_frames = _rollout_jvp(sd.model, p, tp, sd.frames)
-                for o in sd.observables:
-                    _, dr = _obs_jvp(o, frames, t0, d_frames, dt0)
-                    blocks.append(np.asarray(dr, float))
-            J[:, j] = np.concatenate(blocks)
+                frames, d_frames = _rollout_jvps(sd.model, p, stacked, sd.frames)
+                dt0 = jax.vmap(self._t0)(stacked)
+                dr = np.concatenate([np.asarray(_obs_jvps(o, frames, t0, d_frames, dt0), float)
+                                     for o in sd.observables], axis=1)
+                n = min(size, len(live) - k)
+                J[rows, live[k:k + n]] = dr[:n].T
         J[self.groups.entry_group < 0] = 0.0
         return J
 
@@ -451,7 +477,9 @@ class _Problem:
 class _Fit:
     """A least-squares fit: the full parameter vector ``theta (P,)``, all residuals there
     ``r (M,)`` (held-out entries included), the training loss, trial points spent, the free
-    parameters' names, the training loss after each accepted step, and the covariance."""
+    parameters' names, the training loss after each accepted step, the covariance, and the
+    solver's Jacobian at ``theta`` when it has it (``(M, len(free))``, training rows; the
+    covariance reuses it instead of spending ``len(free)`` JVP rollouts again)."""
 
     theta: np.ndarray
     r: np.ndarray
@@ -460,6 +488,7 @@ class _Fit:
     free: list
     history: list
     cov: np.ndarray | None = None
+    jacobian: np.ndarray | None = None
 
 
 #: Tolerances of the Levenberg–Marquardt's Cauchy test (those of :class:`jaxmpm.FitConfig`), and
@@ -501,7 +530,7 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
         th[cols] = sub
         return th
 
-    iterations, history = 0, []
+    iterations, history, jac = 0, [], None
     if len(cols):
         out = levenberg_marquardt(
             lambda sub: w * problem.residuals(full(sub), training_only=True), theta[cols],
@@ -511,13 +540,19 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
             max_steps=max_iter, rtol=_RTOL, atol=_ATOL, progress=progress)
         if not out.unhealthy_start:
             theta, iterations, history = full(out.y), out.iterations, out.losses
+            at_y = out.jacobian[1] if out.jacobian is not None else None
+            jac = None if at_y is None else (np.asarray(at_y[0], float), np.asarray(at_y[1], float))
     r = problem.residuals(theta)
     loss = float(np.sum(np.where(w > 0, w * r, 0.0) ** 2))  # held-out entries may be NaN (an unstable forecast)
     if not np.isfinite(loss):
         raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
                           "use more substeps or a better initial guess")
+    if jac is not None:  # the solver's last Jacobian, if it was taken here (its residuals are these)
+        r_solver, J_solver = jac
+        here = np.where(w > 0, w * r, 0.0)
+        jac = J_solver if np.allclose(r_solver, here, rtol=1e-5, atol=1e-6 * max(np.abs(here).max(), 1e-300)) else None
     return _Fit(theta=theta, r=r, loss=loss, iterations=iterations, free=list(free_names),
-                history=history or [loss])
+                history=history or [loss], jacobian=jac)
 
 
 def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:
@@ -531,7 +566,7 @@ def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:
     full = np.zeros((len(cols_all), len(cols_all)))
     if len(cols) == 0:
         return full
-    J = problem.jacobian(fit.theta, cols)
+    J = fit.jacobian[:, ~pinned] if fit.jacobian is not None else problem.jacobian(fit.theta, cols)
     g = problem.groups.entry_group
     rows = (g >= 0) & train_entries
     keep = np.flatnonzero(~pinned)
@@ -760,11 +795,13 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     return rss_b, min(rss_e, rss_b), step[len(base_cols_local):]
 
 
-def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter, progress=None):
+def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter, progress=None,
+           good_enough: Callable[[_Fit], bool] | None = None):
     """Fit base + extension from two starts and keep the better training loss: the current fit
-    (base parameters may have compensated for the missing physics and sit in a poor basin) and
-    the scene's own values of the base parameters; the extension starts at its linearised
-    (Gauss–Newton) estimate when that beats its null value."""
+    (a warm start) and, unless its result is ``good_enough``, the scene's own values of the base
+    parameters (the current ones may have compensated for the missing physics and sit in a
+    poor basin); the extension starts at its linearised (Gauss–Newton) estimate when that
+    beats its null value."""
     starts = [current.theta.copy()]
     alt = current.theta.copy()
     base_cols = problem.columns([n for n in current.free if problem.entry(n).kind == "base"])
@@ -788,6 +825,8 @@ def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_tr
             continue
         if best is None or f.loss < best.loss:
             best = f
+        if good_enough is not None and good_enough(best):
+            break
     return best if best is not None else err
 
 
@@ -809,6 +848,7 @@ def discover(
     convergence: bool = True,
     noise_floor: float | None = None,
     num_pixels: int = 256,
+    prune: bool = True,
     progress: Callable[[str], None] | None = None,
 ) -> Discovery:
     """Run the discrepancy workflow (see the module docstring).
@@ -830,6 +870,12 @@ def discover(
         noise_floor: observation noise (RMS, in the data's units) if known: a base model whose
             held-out error is within 1.5 times it has nothing to explain.
         num_pixels: pixels per view and frame for silhouettes.
+        prune: refit only candidates whose score is significant at ``alpha``, none that the
+            screen predicts to remove less of the training error than a passing refit of the
+            same step removed, and no second start once the warm start passes.
+            ``False`` refits the ``top`` best from both starts whatever their scores (for
+            strongly nonlinear residuals, e.g. silhouettes, where the score can understate
+            an effect).
         progress: optional callback receiving one line per stage.
 
     Returns:
@@ -939,6 +985,26 @@ def discover(
         # the rule needs a held-out improvement above the numerical error: when the current
         # held-out error is itself within it, no refit can pass, so none is run
         hopeless = convergence and current_err <= numerical
+        removed = None  # the largest share of the training error a passing refit of this step removed
+
+        def judge(f, c):
+            """The selection rule on candidate ``c`` refitted as ``f``: its numbers, and the
+            conditions it fails (none: it passes)."""
+            train_error = problem.error(f.r, train)
+            heldout_error = problem.error(f.r, heldout) if heldout.any() else train_error
+            gain = 1.0 - heldout_error / max(current_err, 1e-300)
+            lrt = n_train * math.log(max(current.loss, 1e-300) / max(f.loss, 1e-300))
+            p = p_value(lrt, c.dof, c.boundary)
+            reasons = []
+            if gain < min_gain:
+                reasons.append(f"held-out gain {gain:.1%} < {min_gain:.0%}")
+            if not p < alpha:
+                reasons.append(f"likelihood-ratio p = {p:.3g} >= {alpha}")
+            if convergence and current_err - heldout_error <= numerical:
+                reasons.append(f"the improvement {current_err - heldout_error:.3g} is within the numerical error "
+                               f"{numerical:.3g}")
+            return dict(train_error=train_error, heldout_error=heldout_error, gain=gain, lrt=lrt, p_value=p), reasons
+
         for c in cands[:top]:
             if c.score <= 1e-9:
                 c.reason = "no predicted improvement"
@@ -947,21 +1013,26 @@ def discover(
                 c.reason = (f"not refitted: the held-out error {current_err:.3g} is within the numerical error "
                             f"{numerical:.3g}, so no improvement can exceed it")
                 continue
+            if prune and not c.score_p < alpha:
+                c.reason = f"not refitted: the screen is not significant (p {c.score_p:.3g} >= {alpha})"
+                continue
+            if prune and removed is not None and c.score < removed:
+                c.reason = (f"not refitted: it is predicted to remove {c.score:.1%} of the training error, "
+                            f"less than the {removed:.1%} a passing refit removed")
+                continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
             f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c.lin_step,
                        entry_train, max_iter,
-                       progress=lambda i, l, c=c: say(f"    {c.id} refit iteration {i}: training loss {l:.4e}"))
+                       progress=lambda i, l, c=c: say(f"    {c.id} refit iteration {i}: training loss {l:.4e}"),
+                       good_enough=(lambda f, c=c: not judge(f, c)[1]) if prune else None)
             if isinstance(f, str):
                 c.reason = f"refit failed: {f}"
                 continue
             c.refit = True
-            c.train_error = problem.error(f.r, train)
-            c.heldout_error = problem.error(f.r, heldout) if heldout.any() else c.train_error
-            c.gain = 1.0 - c.heldout_error / max(current_err, 1e-300)
-            rss0, rss1 = current.loss, f.loss
-            c.lrt = n_train * math.log(max(rss0, 1e-300) / max(rss1, 1e-300))
-            c.p_value = p_value(c.lrt, c.dof, c.boundary)
+            numbers, reasons = judge(f, c)
+            c.train_error, c.heldout_error, c.gain = numbers["train_error"], numbers["heldout_error"], numbers["gain"]
+            c.lrt, c.p_value = numbers["lrt"], numbers["p_value"]
             vals = problem.values(f.theta)
             c.parameters = {n: vals[n] for n in problem.ext_names(c.id)}
             try:
@@ -971,15 +1042,9 @@ def discover(
             except Exception:  # noqa: BLE001 - diagnostics only
                 cov, c.std = None, {}
             c.fit, c.cov = f, cov
-            improvement = current_err - c.heldout_error
-            reasons = []
-            if c.gain < min_gain:
-                reasons.append(f"held-out gain {c.gain:.1%} < {min_gain:.0%}")
-            if not c.p_value < alpha:
-                reasons.append(f"likelihood-ratio p = {c.p_value:.3g} >= {alpha}")
-            if convergence and improvement <= numerical:
-                reasons.append(f"the improvement {improvement:.3g} is within the numerical error {numerical:.3g}")
             c.reason = "; ".join(reasons) if reasons else "passes"
+            if not reasons:
+                removed = max(removed or 0.0, 1.0 - f.loss / max(current.loss, 1e-300))
             say(f"    {c.id}: held-out gain {c.gain:.1%}, LRT {c.lrt:.3g} (p {c.p_value:.3g}) -> {c.reason}")
             if not reasons and (best_cand is None or c.heldout_error < best_cand.heldout_error):
                 best_cand, best_fit = c, f
@@ -1020,7 +1085,7 @@ def discover(
     # first-step candidates first (the ranked table of the contract), later steps after
     order = sorted(all_cands, key=lambda c: (c.step, -c.score))
     settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),
-                    top=top, min_gain=min_gain, alpha=alpha, max_extensions=max_extensions, max_iter=max_iter,
+                    top=top, min_gain=min_gain, alpha=alpha, max_extensions=max_extensions, max_iter=max_iter, prune=prune,
                     convergence=convergence, noise_floor=noise_floor, train_groups=n_train,
                     heldout_groups=int(heldout.sum()), sequences=[s.name for s in sequences])
     for c in order:  # the workflow's working state is not part of the result

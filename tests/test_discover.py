@@ -7,6 +7,7 @@ All scenes share one layout (a 2D elastic block, 48 particles, a slip floor, 12 
 so the rollout and its forward-mode derivative compile once for the whole file.
 """
 
+import importlib
 import json
 
 import jax.numpy as jnp
@@ -134,10 +135,10 @@ def test_gravity_error_is_found_from_silhouettes():
     obs = Observation(times=np.arange(FRAMES) * m.frame_dt, masks=views["masks"], intrinsics=views["intrinsics"],
                       cam_to_world=views["cam_to_world"])
     assert obs.masks[0, 0].mean() > 5  # the body is in view
-    # the material is known (names=[]); the free-flight candidates, all refitted (rendering makes every rollout dearer than with tracks, and a
-    # silhouette residual is too nonlinear for the score to rank gravity and initial velocity reliably)
+    # the material is known (names=[]); the free-flight candidates, all refitted (prune=False: rendering makes every rollout dearer than
+    # with tracks, and a silhouette residual is too nonlinear for the score to rank gravity and initial velocity reliably)
     result = discover(m, scene.params, obs, names=[], num_pixels=150, extensions=["gravity", "initial_velocity", "drag"],
-                      top=3, max_extensions=1, convergence=False, max_iter=15)
+                      top=3, max_extensions=1, convergence=False, max_iter=15, prune=False)
     # binary masks against soft silhouettes leave an error floor: about 60 % of the error is removable
     _check(result, "gravity", "gravity.delta", [0.0, -2.0], 0.4, min_gain=0.4)
 
@@ -180,6 +181,54 @@ def test_no_refit_is_run_when_no_improvement_could_exceed_the_numerical_error():
     assert result.candidates[0].id == "gravity" and result.candidates[0].score > 0.9
     screened = [c for c in result.candidates if c.score > 1e-9 and "rank" not in c.reason]
     assert screened and all("numerical error" in c.reason for c in screened), [c.reason for c in result.candidates]
+
+
+def test_only_candidates_the_screen_finds_significant_are_refitted():
+    """No hidden effect: no score is significant, so nothing is refitted and every screened
+    candidate says why; refitting the best two anyway (``prune=False``) reaches the same verdict."""
+    scene, obs = _hidden(THROW, seed=1)
+    pruned = discover(scene.model, scene.params, obs, top=3, max_extensions=1, convergence=False)
+    assert not pruned.discrepancy and not any(c.refit for c in pruned.candidates)
+    ranked = [c for c in pruned.candidates[:3] if c.score > 1e-9]
+    assert ranked and all(c.score_p >= 0.05 and "screen is not significant" in c.reason for c in ranked), \
+        [(c.id, c.score_p, c.reason) for c in pruned.candidates]
+    full = discover(scene.model, scene.params, obs, top=2, max_extensions=1, convergence=False, prune=False)
+    assert not full.discrepancy and any(c.refit for c in full.candidates)
+    assert full.base_error == pruned.base_error
+
+
+@pytest.mark.x64
+def test_the_screen_jacobian_matches_central_differences(monkeypatch):
+    """The residual Jacobian discover screens and fits with (tangents batched on one primal,
+    in chunks) against float64 central differences of its residuals, over the base and four
+    extensions' columns, through flight and landing; and chunked in threes (with padding) the
+    same to round-off."""
+    D = importlib.import_module("jaxmpm.discover")  # (the package exports the function under this name)
+
+    spec = _spec(THROW)
+    spec["frames"] = 8
+    scene = load_scene(spec, dtype=jnp.float64)
+    m, p = scene.model, scene.params
+    x = np.asarray(_rollout(m, X.enable(m, p, ["gravity"], {"gravity": {"delta": [0.0, -1.0]}}), 8)[0].x, float)
+    obs = Observation(times=np.arange(8) * m.frame_dt, positions=x, point_ids="particles")
+    prob = D._Problem([Sequence(m, p, obs)], ["E", "nu"], ["gravity", "drag", "initial_velocity", "time_offset"], 64,
+                      jnp.float64)
+    theta = prob.initial()
+    theta[prob.columns(["drag.linear", "time_offset.t0"])] = [0.3, 0.2 * m.frame_dt]
+    cols = np.arange(prob.size)
+    r = prob.residuals(theta)  # (sizes the residual blocks, as discover does first)
+    J = prob.jacobian(theta, cols)
+    assert J.shape == (len(r), 10)
+    h = 1e-6
+    for j in cols:
+        e = np.zeros(prob.size)
+        e[j] = h
+        fd = (prob.residuals(theta + e) - prob.residuals(theta - e)) / (2 * h)
+        scale = max(np.linalg.norm(fd), 1e-12)
+        assert np.linalg.norm(J[:, j] - fd) <= 1e-5 * scale, (j, np.linalg.norm(J[:, j] - fd) / scale)
+    assert np.linalg.norm(J[:, :2]) > 0 and np.all(np.linalg.norm(J, axis=0) > 0)
+    monkeypatch.setattr(D, "JVP_BATCH", 3)
+    np.testing.assert_allclose(prob.jacobian(theta, cols), J, rtol=1e-10, atol=1e-12 * np.abs(J).max())
 
 
 def test_discover_rejects_bad_inputs():

@@ -328,6 +328,28 @@ def test_lm_probes_the_floor_once_per_accepted_point():
     assert out.timing["floor_checks"] == 1 and float(np.max(np.abs(out.y))) == 0.0
 
 
+def test_lm_with_ftol_stops_when_its_line_search_gains_less_than_ftol():
+    """Host residuals that the Jacobian claims fall steeply along the Gauss-Newton step but that
+    fall by ~1e-9 (relative): every trust-region trial is rejected, and the line search after
+    them finds that sliver. With ``ftol`` (discover's fits) the solve ends there, converged
+    to the resolution asked for; without it the sliver is taken and the solve escapes on."""
+    from jaxmpm.identify.solvers import levenberg_marquardt
+
+    A = np.array([[1.0], [2.0]])
+    b = np.array([1.0, 1.0])
+
+    def residuals(v):
+        return b + 1e-9 * (A @ v)  # the true slope: 1e-9 of the claimed one
+
+    kwargs = dict(jacobian=lambda v: A, max_steps=40, rtol=1e-6, atol=1e-12)
+    out = levenberg_marquardt(residuals, np.zeros(1), ftol=1e-5, **kwargs)
+    assert out.converged and "less than ftol" in out.message, out.message
+    assert out.timing["escapes"] == 0 and out.iterations < 10
+    assert float(out.y[0]) == 0.0  # the start: the sliver was not taken
+    out = levenberg_marquardt(residuals, np.zeros(1), **kwargs)
+    assert out.timing["escapes"] >= 1 and float(out.y[0]) < 0.0
+
+
 def _slab_residuals(lo, hi, height):
     """Host residuals of ``v (1,)``, smooth with their minimum at 3, plus ``height`` on every
     entry inside the slab ``lo < v < hi``: a jump of the loss (a contact switch) that the

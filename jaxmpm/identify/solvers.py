@@ -277,14 +277,16 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     (rejected steps at the loss's round-off floor), ``"creep"`` (a step lowered the loss by less
     than :data:`CREEP` at a Gauss-Newton stationary point), ``"rough"``
     (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
-    (iteration limit) or ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
-    point: converged)."""
+    (iteration limit), ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
+    point: converged) or ``"resolution"`` (a line search gained less than ``ftol``: converged)."""
     n = f"{iterations} iteration{'s' * (iterations != 1)}"
     return {
         "converged": f"converged in {n}",
         "stationary": (f"converged in {n} (the last trial steps could not "
                        "lower the loss further and the Gauss-Newton step is within tolerance: a stationary point "
                        "at this precision)"),
+        "resolution": (f"converged in {n} (trial steps were rejected and the line search along the Gauss-Newton "
+                       "step lowered the loss by less than ftol, the resolution asked for)"),
         "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than "
                   "the loss's measured round-off noise, so no step can be told from noise; parameters in poorly "
                   "determined directions are known only to their std)"),
@@ -362,7 +364,8 @@ def levenberg_marquardt(
         max_steps: trial points (rejected ones included); ``rtol``, ``atol``: the tolerances.
         progress: ``progress(offset + iteration, loss)`` every iteration.
         ftol: an accepted step that lowers the loss by less than this fraction also passes
-            the tolerance test (then checked like the Cauchy test's pass).
+            the tolerance test (then checked like the Cauchy test's pass); and a line search
+            (below) that lowers it by less ends the solve, converged to this resolution.
         scaled: damp each parameter by its own curvature (Marquardt: ``D = |J_j|`` at the
             start, first damping :data:`MARQUARDT_START` of it) instead of optimistix's
             identity, and hold the parameters the data do not see (:data:`INERT`): invariant
@@ -539,6 +542,8 @@ def levenberg_marquardt(
             at_y = (r / scale, J / scale)
             found, verdict = gauss_newton_escape(loss_of, rj, flat, losses[-1], rtol, *at_y, bounds=bounds)
             checks_s += time.perf_counter() - t_check
+            if stop_test and found is not None and ftol is not None and losses[-1] - found[1] < ftol * losses[-1]:
+                found, verdict = None, "resolution"  # a gain the caller does not resolve: stop here
             if found is not None and escapes < MAX_ESCAPES:
                 escapes += 1
                 y_eval, r, J, at_y = np.asarray(found[0], np.float64), None, None, None
@@ -549,7 +554,7 @@ def levenberg_marquardt(
                 jump_tried = True  # (the same line search is not tried again from this point)
                 continue
             stalled = not succeeded
-            converged = verdict in STATIONARY
+            converged = verdict in STATIONARY or verdict == "resolution"
             break
     if r is None:  # the iteration limit came right after an escape: its point is the result
         r_e, J_e = evaluate(y_eval)
@@ -559,6 +564,8 @@ def levenberg_marquardt(
         how = "floor"
     elif crept_stationary:
         how = "creep"
+    elif verdict == "resolution":
+        how = "resolution"
     elif stalled:  # the next trial point: is the simulation unstable there?
         unhealthy = not np.all(np.isfinite(evaluate(y_eval)[0]))
         if unhealthy:
