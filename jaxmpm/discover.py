@@ -1031,8 +1031,8 @@ def discover(
                 continue
             c.refit = True
             numbers, reasons = judge(f, c)
-            c.train_error, c.heldout_error, c.gain = numbers["train_error"], numbers["heldout_error"], numbers["gain"]
-            c.lrt, c.p_value = numbers["lrt"], numbers["p_value"]
+            for name, value in numbers.items():  # train_error, heldout_error, gain, lrt, p_value
+                setattr(c, name, value)
             vals = problem.values(f.theta)
             c.parameters = {n: vals[n] for n in problem.ext_names(c.id)}
             try:
