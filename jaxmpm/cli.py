@@ -342,8 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout", type=float, default=0.3, help="fraction of the latest observed times held out (default 0.3)")
     p.add_argument("--top", type=int, default=3, help="extensions refitted per greedy step (default 3)")
     p.add_argument("--refit-all", action="store_true",
-                   help="refit the --top best whatever their scores, from both starts (default: only what can change "
-                        "the verdict; for silhouettes, where the score can understate an effect)")
+                   help="refit the --top best whatever their scores, from both starts (default: only significant "
+                        "scores, none predicted below a passing refit; use it for silhouettes, where the score can "
+                        "understate an effect)")
     p.add_argument("--min-gain", type=float, default=0.1, help="smallest held-out gain kept (default 0.1)")
     p.add_argument("--alpha", type=float, default=0.05, help="level of the likelihood-ratio test (default 0.05)")
     p.add_argument("--max-extensions", type=int, default=3, help="most extensions added greedily (default 3)")
