@@ -59,6 +59,7 @@ def block_scene(args):
 def main() -> None:
     from jaxmpm import extensions as X
     from jaxmpm.discover import _rollout, discover
+    from jaxmpm.discover_report import format_timing
     from jaxmpm.observe import Observation
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -92,7 +93,8 @@ def main() -> None:
            "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,
            "parameters": {k: np.asarray(v, float).tolist() for k, v in result.parameters.items()},
            "refits": [c.id for c in result.candidates if c.refit],
-           "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+           "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0, "timing": result.timing}
+    print(format_timing(result))
     print(json.dumps(row))
     if args.json:
         Path(args.json).write_text(json.dumps(row, indent=2))

@@ -213,7 +213,7 @@ def parse_weights(text: str | None) -> dict | None:
 def cmd_discover(args) -> int:
     """``jaxmpm discover SCENE OBS.npz --out DIR``: the discrepancy workflow (report.md, report.json, plots)."""
     from .discover import discover
-    from .discover_report import write_report
+    from .discover_report import format_timing, write_report
     from .observe import load_observation
     from .scene import load_scene
 
@@ -236,6 +236,8 @@ def cmd_discover(args) -> int:
         progress=say,
     )
     files = write_report(result, out, title=f"Discrepancy report: {Path(args.scene).name} vs {Path(args.observations).name}")
+    if args.profile:
+        print(format_timing(result))
     print(result.verdict)
     print(f"wrote {files['report.md']}, {files['report.json']} and {len(files['plots'])} plots")
     return 0
@@ -354,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pixels", type=int, default=256, help="pixels per view and frame for silhouettes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("--float64", action="store_true", help="run in float64")
+    p.add_argument("--profile", action="store_true",
+                   help="print where the time went (rollouts, Jacobian rollouts, compilation, host work) per phase; "
+                        "report.json and report.md carry it too")
     p.set_defaults(func=cmd_discover)
 
     from .reconstruct.cli import add_identify_parser

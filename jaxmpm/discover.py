@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time as _time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence as _Seq
 
@@ -252,8 +253,49 @@ class _SeqData:
         self.group_label = gl
 
 
+@dataclass
+class _Costs:
+    """What a :class:`_Problem` has spent so far: forward rollouts (``rollouts``, their wall
+    seconds ``rollout_s``), forward-mode Jacobian rollouts (``jvp_rollouts``, each one primal
+    shared by several tangents; ``tangents`` counts the tangents carried, padding included;
+    ``jvp_s``), Levenberg–Marquardt runs, their iterations and rejected trial steps; and per
+    compiled program (``calls``: key -> the seconds of each call, the phase of its first call)
+    what the compilation estimate needs."""
+
+    rollouts: int = 0
+    rollout_s: float = 0.0
+    jvp_rollouts: int = 0
+    tangents: int = 0
+    jvp_s: float = 0.0
+    fits: int = 0
+    iterations: int = 0
+    rejected_steps: int = 0
+    calls: dict = field(default_factory=dict)
+    phase: int = 0  # the phase being recorded (set by the workflow)
+
+    COUNTERS = ("rollouts", "rollout_s", "jvp_rollouts", "tangents", "jvp_s", "fits", "iterations", "rejected_steps")
+
+    def call(self, key, seconds: float) -> None:
+        self.calls.setdefault(key, (self.phase, []))[1].append(seconds)
+
+    def counters(self) -> dict:
+        return {k: getattr(self, k) for k in self.COUNTERS}
+
+    def compile_s(self) -> dict[int, float]:
+        """Estimated compilation per phase: for every program called more than once, its first
+        call's excess over the median of the others, in the phase of that first call
+        (a program called once, e.g. the dt/2 rollout, has no estimate: its whole first call
+        counts as a rollout)."""
+        out: dict[int, float] = {}
+        for phase, seconds in self.calls.values():
+            if len(seconds) > 1:
+                out[phase] = out.get(phase, 0.0) + max(seconds[0] - float(np.median(seconds[1:])), 0.0)
+        return out
+
+
 class _Problem:
-    """The flat parameter vector over all sequences, residuals and forward-mode Jacobians."""
+    """The flat parameter vector over all sequences, residuals and forward-mode Jacobians
+    (what they cost is counted in ``costs``)."""
 
     def __init__(self, sequences, names, candidates, num_pixels, dtype):
         self.dtype = dtype
@@ -316,8 +358,7 @@ class _Problem:
         self.size = i
         self.lower = np.concatenate([en.lower for en in self.entries])
         self.upper = np.concatenate([en.upper for en in self.entries])
-        self.evaluations = 0
-        self.jvps = 0
+        self.costs = _Costs()
 
     # ---- vectors
 
@@ -387,16 +428,20 @@ class _Problem:
             if i in skip:
                 out.append(None)
                 continue
+            clock = _time.perf_counter()
             p = self.unpack(jnp.asarray(theta), i)
             model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
             frames, ok = _rollout(model, p, sd.frames)
-            out.append((frames, bool(ok), p))
+            out.append((frames, bool(ok), p))  # (bool waits for the rollout)
+            seconds = _time.perf_counter() - clock
+            self.costs.rollouts += 1
+            self.costs.rollout_s += seconds
+            self.costs.call(("rollout", i, substeps_factor), seconds)
         return out
 
     def residuals(self, theta, substeps_factor: int = 1, trajectories=None, training_only: bool = False) -> np.ndarray:
         """All residuals at ``theta``; with ``training_only``, sequences whose data are all held
         out are not simulated (their entries are 0)."""
-        self.evaluations += 1
         skip = self.skip if training_only else frozenset()
         trajs = trajectories or self.trajectories(theta, substeps_factor, skip)
         rs = []
@@ -447,11 +492,16 @@ class _Problem:
                 batch = tangents[k:k + size]
                 batch = batch + [jax.tree_util.tree_map(jnp.zeros_like, batch[0])] * (size - len(batch))  # padding
                 stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
-                self.jvps += 1
+                clock = _time.perf_counter()
                 frames, d_frames = _rollout_jvps(sd.model, p, stacked, sd.frames)
                 dt0 = jax.vmap(self._t0)(stacked)
                 dr = np.concatenate([np.asarray(_obs_jvps(o, frames, t0, d_frames, dt0), float)
                                      for o in sd.observables], axis=1)
+                seconds = _time.perf_counter() - clock
+                self.costs.jvp_rollouts += 1
+                self.costs.tangents += size
+                self.costs.jvp_s += seconds
+                self.costs.call(("jvp", i, size), seconds)
                 n = min(size, len(live) - k)
                 J[rows, live[k:k + n]] = dr[:n].T
         J[self.groups.entry_group < 0] = 0.0
@@ -504,6 +554,41 @@ _RTOL, _ATOL, _FTOL = 1e-5, 1e-8, 1e-5
 STATISTIC_RESOLUTION = 0.01
 
 
+class _Phases:
+    """The workflow's phases, each with its wall time and what the problem spent in it (the
+    ``timing`` block of :class:`Discovery`; see :meth:`timing`)."""
+
+    def __init__(self, costs: _Costs):
+        self.costs, self.rows = costs, []
+
+    @contextmanager
+    def __call__(self, name: str, since: float | None = None):
+        """Record phase ``name`` (its clock started at ``since`` if given)."""
+        self.costs.phase = len(self.rows)
+        row = {"phase": name}
+        self.rows.append(row)
+        before, clock = self.costs.counters(), _time.perf_counter() if since is None else since
+        try:
+            yield
+        finally:
+            row["wall_s"] = _time.perf_counter() - clock
+            row.update({k: v - before[k] for k, v in self.costs.counters().items()})
+
+    def timing(self, total_s: float) -> dict:
+        """``{"total_s", "phases": [...], "totals": {...}}``: per phase its ``wall_s``, the
+        counters of :class:`_Costs` spent in it, ``compile_s`` (estimated: the first calls'
+        excess over later calls of the same program) and ``host_s`` (wall time outside the
+        rollouts: the solver's linear algebra, statistics, unpacking parameters)."""
+        compile_s = self.costs.compile_s()
+        phases = []
+        for k, row in enumerate(self.rows):
+            row = dict(row, compile_s=compile_s.get(k, 0.0))
+            row["host_s"] = max(row["wall_s"] - row["rollout_s"] - row["jvp_s"], 0.0)
+            phases.append(row)
+        totals = {k: sum(r[k] for r in phases) for k in (*_Costs.COUNTERS, "compile_s", "host_s")}
+        return {"total_s": total_s, "phases": phases, "totals": totals}
+
+
 def _train_groups(problem: _Problem, train_entries) -> int:
     """How many groups (frames) have training entries: the statistics' sample size ``n``."""
     g = problem.groups.entry_group
@@ -538,6 +623,9 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
             lower=problem.lower[cols], upper=problem.upper[cols], scaled=True,
             ftol=max(_FTOL, STATISTIC_RESOLUTION / _train_groups(problem, train_entries)),
             max_steps=max_iter, rtol=_RTOL, atol=_ATOL, progress=progress)
+        problem.costs.fits += 1
+        problem.costs.iterations += out.iterations
+        problem.costs.rejected_steps += int(out.timing.get("rejected_steps", 0))
         if not out.unhealthy_start:
             theta, iterations, history = full(out.y), out.iterations, out.losses
             at_y = out.jacobian[1] if out.jacobian is not None else None
@@ -640,7 +728,14 @@ def _plain(v):
 
 @dataclass
 class Discovery:
-    """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``)."""
+    """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``).
+
+    ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
+    dt/2 check, each step's screen and each refit): wall seconds; forward rollouts and their
+    seconds; forward-mode Jacobian rollouts, the tangents they carried and their seconds;
+    Levenberg–Marquardt runs, iterations and rejected trial steps; compilation (estimated) and
+    host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a table).
+    """
 
     discrepancy: bool
     cause: str | None
@@ -661,6 +756,7 @@ class Discovery:
     settings: dict
     seconds: float
     not_applicable: dict
+    timing: dict = field(default_factory=dict)
     # internals for the report
     problem: Any = field(default=None, repr=False)
     base_theta: Any = field(default=None, repr=False)
@@ -713,6 +809,7 @@ class Discovery:
                 "not_applicable": self.not_applicable,
                 "settings": self.settings,
                 "seconds": float(self.seconds),
+                "timing": self.timing,
             },
         }
 
@@ -905,22 +1002,26 @@ def discover(
         if all(r is not None for r in reasons):
             not_applicable[e] = reasons[0]
     problem = _Problem(sequences, names, [e for e in requested if e not in not_applicable], num_pixels, dtype)
-    train, heldout, entry_train = _holdout_masks(problem, holdout, holdout_sequences, holdout_views)
+    phase = _Phases(problem.costs)
+    with phase("setup", since=start):
+        train, heldout, entry_train = _holdout_masks(problem, holdout, holdout_sequences, holdout_views)
+        problem.residuals(problem.initial())  # sizes of every sequence's residuals
     n_train = int(train.sum())
-    problem.residuals(problem.initial())  # sizes of every sequence's residuals
     problem.skip = frozenset(i for i in range(len(problem.seqs)) if not np.any(train[problem.groups.sequence == i]))
 
     # ---- 1. the base fit
     say(f"fitting the base model ({', '.join(names)}) on {n_train} training frames; "
         f"{int(heldout.sum())} held out")
     theta0 = problem.initial()
-    base = _lm(problem, theta0, problem.base_names(), entry_train, max_iter=max_iter,
-               progress=lambda i, l: say(f"  base fit iteration {i}: training loss {l:.4e}"))
+    with phase("base fit"):
+        base = _lm(problem, theta0, problem.base_names(), entry_train, max_iter=max_iter,
+                   progress=lambda i, l: say(f"  base fit iteration {i}: training loss {l:.4e}"))
     base_train_err = problem.error(base.r, train)
     base_err = problem.error(base.r, heldout) if heldout.any() else base_train_err
-    base_cov = _covariance(problem, base, entry_train)
+    with phase("base uncertainty"):
+        base_cov = _covariance(problem, base, entry_train)
+        base_std = _std_physical(problem, base.theta, problem.base_names(), base_cov)
     base_values = {n: problem.values(base.theta)[n] for n in problem.base_names()}
-    base_std = _std_physical(problem, base.theta, problem.base_names(), base_cov)
     say(f"base model: training error {base_train_err:.4g}, held-out error {base_err:.4g}")
 
     # ---- 2. convergence check (numerical error)
@@ -928,7 +1029,8 @@ def discover(
     numerical = 0.0
     if convergence:
         say("convergence check: the fitted base model at dt/2")
-        r_half = problem.residuals(base.theta, substeps_factor=2)
+        with phase("dt/2 check"):
+            r_half = problem.residuals(base.theta, substeps_factor=2)
         diff = r_half - base.r
         numerical = problem.error(diff, heldout if heldout.any() else train)
         conv = {
@@ -956,28 +1058,29 @@ def discover(
     while remaining and len(selected) < max_extensions:
         step_no += 1
         say(f"step {step_no}: screening {len(remaining)} extensions at their null values (score test)")
-        base_cols = problem.columns(current_names)
-        ext_cols = {e: problem.columns(problem.ext_names(e)) for e in remaining}
-        all_cols = np.concatenate([base_cols] + [ext_cols[e] for e in remaining])
-        J = problem.jacobian(current.theta, all_cols)
-        w = entry_train.astype(float)
-        local = {c: i for i, c in enumerate(all_cols)}
-        b_loc = np.array([local[c] for c in base_cols], int)
-        cands = []
-        for e in remaining:
-            e_loc = np.array([local[c] for c in ext_cols[e]], int)
-            lo = problem.lower[ext_cols[e]] - current.theta[ext_cols[e]]
-            hi = problem.upper[ext_cols[e]] - current.theta[ext_cols[e]]
-            rss_b, rss_e, lin_step = _linear_screen(J, current.r, w, b_loc, e_loc, lo, hi)
-            score = (rss_b - rss_e) / max(rss_b, 1e-300)
-            stat = n_train * math.log(max(rss_b, 1e-300) / max(rss_e, 1e-300))
-            specs = [problem.entry(n).spec for n in problem.ext_names(e)]
-            dof = int(sum(s.size for s in specs))
-            boundary = dof == 1 and specs[0].bounded
-            c = Candidate(id=e, score=float(score), score_p=p_value(stat, dof, boundary), dof=dof, step=step_no)
-            c.lin_step = lin_step
-            c.boundary = boundary
-            cands.append(c)
+        with phase(f"step {step_no}: screen"):
+            base_cols = problem.columns(current_names)
+            ext_cols = {e: problem.columns(problem.ext_names(e)) for e in remaining}
+            all_cols = np.concatenate([base_cols] + [ext_cols[e] for e in remaining])
+            J = problem.jacobian(current.theta, all_cols)
+            w = entry_train.astype(float)
+            local = {c: i for i, c in enumerate(all_cols)}
+            b_loc = np.array([local[c] for c in base_cols], int)
+            cands = []
+            for e in remaining:
+                e_loc = np.array([local[c] for c in ext_cols[e]], int)
+                lo = problem.lower[ext_cols[e]] - current.theta[ext_cols[e]]
+                hi = problem.upper[ext_cols[e]] - current.theta[ext_cols[e]]
+                rss_b, rss_e, lin_step = _linear_screen(J, current.r, w, b_loc, e_loc, lo, hi)
+                score = (rss_b - rss_e) / max(rss_b, 1e-300)
+                stat = n_train * math.log(max(rss_b, 1e-300) / max(rss_e, 1e-300))
+                specs = [problem.entry(n).spec for n in problem.ext_names(e)]
+                dof = int(sum(s.size for s in specs))
+                boundary = dof == 1 and specs[0].bounded
+                c = Candidate(id=e, score=float(score), score_p=p_value(stat, dof, boundary), dof=dof, step=step_no)
+                c.lin_step = lin_step
+                c.boundary = boundary
+                cands.append(c)
         cands.sort(key=lambda c: -c.score)
         for c in cands:
             say(f"  {c.id:18s} score {c.score:7.4f}  p {c.score_p:.3g}")
@@ -1022,10 +1125,18 @@ def discover(
                 continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
-            f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c.lin_step,
-                       entry_train, max_iter,
-                       progress=lambda i, l, c=c: say(f"    {c.id} refit iteration {i}: training loss {l:.4e}"),
-                       good_enough=(lambda f, c=c: not judge(f, c)[1]) if prune else None)
+            with phase(f"step {step_no}: refit {c.id}"):
+                f = _refit(problem, current, theta0, free, problem.columns(problem.ext_names(c.id)), c.lin_step,
+                           entry_train, max_iter,
+                           progress=lambda i, l, c=c: say(f"    {c.id} refit iteration {i}: training loss {l:.4e}"),
+                           good_enough=(lambda f, c=c: not judge(f, c)[1]) if prune else None)
+                if not isinstance(f, str):
+                    try:
+                        cov = _covariance(problem, f, entry_train)
+                        stds = _std_physical(problem, f.theta, free, cov)
+                        c.std = {n: stds[n] for n in problem.ext_names(c.id)}
+                    except Exception:  # noqa: BLE001 - diagnostics only
+                        cov, c.std = None, {}
             if isinstance(f, str):
                 c.reason = f"refit failed: {f}"
                 continue
@@ -1035,12 +1146,6 @@ def discover(
                 setattr(c, name, value)
             vals = problem.values(f.theta)
             c.parameters = {n: vals[n] for n in problem.ext_names(c.id)}
-            try:
-                cov = _covariance(problem, f, entry_train)
-                stds = _std_physical(problem, f.theta, free, cov)
-                c.std = {n: stds[n] for n in problem.ext_names(c.id)}
-            except Exception:  # noqa: BLE001 - diagnostics only
-                cov, c.std = None, {}
             c.fit, c.cov = f, cov
             c.reason = "; ".join(reasons) if reasons else "passes"
             if not reasons:
@@ -1090,6 +1195,7 @@ def discover(
                     heldout_groups=int(heldout.sum()), sequences=[s.name for s in sequences])
     for c in order:  # the workflow's working state is not part of the result
         c.lin_step, c.fit, c.cov = None, None, None
+    seconds = _time.perf_counter() - start
     return Discovery(
         discrepancy=discrepancy,
         cause=selected[0] if selected else None,
@@ -1108,8 +1214,9 @@ def discover(
         convergence=conv,
         verdict=verdict,
         settings=settings,
-        seconds=_time.perf_counter() - start,
+        seconds=seconds,
         not_applicable=not_applicable,
+        timing=phase.timing(seconds),
         problem=problem,
         base_theta=base.theta,
         extended_theta=current.theta,

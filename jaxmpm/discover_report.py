@@ -573,6 +573,25 @@ def write_report(discovery, out_dir, *, title: str = "Discrepancy report", data_
             "strata": strata_all}
 
 
+def _timing_rows(timing: dict) -> list[tuple[str, ...]]:
+    """The ``timing`` block as rows: a header, one row per phase, the totals."""
+    rows = [("phase", "wall s", "rollouts", "s", "Jacobian rollouts (tangents)", "s", "LM runs / iterations / rejected",
+             "compile s", "host s")]
+    for r in [*timing["phases"], dict(timing["totals"], phase="all", wall_s=timing["total_s"])]:
+        rows.append((r["phase"], f"{r['wall_s']:.1f}", str(r["rollouts"]), f"{r['rollout_s']:.1f}",
+                     f"{r['jvp_rollouts']} ({r['tangents']})", f"{r['jvp_s']:.1f}",
+                     f"{r['fits']} / {r['iterations']} / {r['rejected_steps']}" if r["fits"] else "-",
+                     f"{r['compile_s']:.1f}", f"{r['host_s']:.1f}"))
+    return rows
+
+
+def format_timing(discovery) -> str:
+    """Where :func:`jaxmpm.discover`'s time went (``discovery.timing``), as a text table."""
+    rows = _timing_rows(discovery.timing)
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+
+
 def _json_default(o):
     if isinstance(o, (np.floating, np.integer)):
         return o.item()
@@ -675,5 +694,13 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
         L += ["![candidates](candidates.png)", ""]
     if d.not_applicable:
         L += ["Not applicable to this scene: " + "; ".join(f"`{k}` ({v})" for k, v in d.not_applicable.items()) + ".", ""]
+    if d.timing:
+        rows = _timing_rows(d.timing)
+        L += ["## Where the time went", "",
+              "Seconds per phase; a Jacobian rollout is one primal carrying several tangents; compilation is "
+              "estimated as the first calls' excess over later calls of the same program.", "",
+              "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+        L += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+        L.append("")
     L += [f"_jaxmpm discover, {d.seconds:.0f} s._", ""]
     return "\n".join(L)

@@ -71,10 +71,33 @@ def test_gravity_error_is_found_with_the_full_workflow():
     assert np.all(np.isfinite(std)) and np.all(std < 0.5)
 
 
-def test_drag_is_found():
+def test_drag_is_found_and_the_cost_of_each_phase_is_accounted_for():
+    D = importlib.import_module("jaxmpm.discover")
     scene, obs = _hidden(THROW, "drag", {"linear": 0.8})
     result = discover(scene.model, scene.params, obs, **FAST)
     _check(result, "drag", "drag.linear", 0.8, 0.1)
+    # the timing block: the phases run, in order, each's rollouts inside its wall time
+    t = result.timing
+    phases = {r["phase"]: r for r in t["phases"]}
+    refitted = [f"step 1: refit {c.id}" for c in result.candidates if c.refit]
+    assert list(phases) == ["setup", "base fit", "base uncertainty", "step 1: screen", *refitted]
+    assert sum(r["wall_s"] for r in t["phases"]) <= t["total_s"] <= result.seconds
+    for r in t["phases"]:
+        assert 0 <= r["rollout_s"] + r["jvp_s"] <= r["wall_s"] and 0 <= r["compile_s"] <= r["wall_s"], r
+    for key, total in t["totals"].items():
+        assert total == pytest.approx(sum(r[key] for r in t["phases"])), key
+    # what was spent: the first residuals; the screen's columns (every parameter, the base's and
+    # each extension's) in chunks of at most JVP_BATCH tangents on one primal; a fit per LM run
+    assert phases["setup"]["rollouts"] == 1 and phases["setup"]["jvp_rollouts"] == 0
+    screen = phases["step 1: screen"]
+    columns = result.problem.size
+    assert screen["jvp_rollouts"] == -(-columns // D.JVP_BATCH) and columns <= screen["tangents"] < columns + screen["jvp_rollouts"]
+    assert screen["rollouts"] == 0 and screen["fits"] == 0
+    base = phases["base fit"]
+    assert base["fits"] == 1 and base["iterations"] >= len(result.base_history) - 1 and base["rollouts"] >= base["iterations"]
+    assert base["jvp_rollouts"] >= 1 and base["tangents"] == base["jvp_rollouts"] * len(result.base_values)
+    assert phases["base uncertainty"]["jvp_rollouts"] == 0  # the covariance reuses the fit's last Jacobian
+    assert all(phases[k]["fits"] >= 1 for k in refitted)
 
 
 def test_initial_velocity_error_is_found():
@@ -104,8 +127,9 @@ def test_collider_friction_is_found_and_reported(tmp_path):
     assert {"id", "score", "gain", "parameters"} <= set(report["candidates"][0])
     assert report["candidates"][0]["id"] == "collider_friction" or any(
         c["id"] == "collider_friction" for c in report["candidates"])
+    assert [r["phase"] for r in report["details"]["timing"]["phases"]][:2] == ["setup", "base fit"]
     text = (tmp_path / "report.md").read_text()
-    assert "collider_friction" in text and "Residual strata" in text
+    assert "collider_friction" in text and "Residual strata" in text and "## Where the time went" in text
     for p in files["plots"]:
         assert p.stat().st_size > 1000
     # the residual sits in the floor's contact band, tangentially
@@ -147,7 +171,7 @@ def test_gravity_error_is_found_from_silhouettes():
     _check(result, "gravity", "gravity.delta", [0.0, -2.0], 0.4, min_gain=0.4)
 
 
-def test_no_hidden_effect_reports_no_discrepancy_through_the_cli(tmp_path):
+def test_no_hidden_effect_reports_no_discrepancy_through_the_cli(tmp_path, capsys):
     scene, obs = _hidden(THROW, seed=1)
     scene_file = tmp_path / "scene.json"
     scene_file.write_text(json.dumps(_spec(THROW)))
@@ -156,8 +180,10 @@ def test_no_hidden_effect_reports_no_discrepancy_through_the_cli(tmp_path):
     assert load_observation(obs_file).positions.shape == obs.positions.shape
     out = tmp_path / "report"
     code = main(["discover", str(scene_file), str(obs_file), "--out", str(out), "--top", "2", "--max-extensions", "1",
-                 "--no-convergence"])
+                 "--no-convergence", "--profile", "--quiet"])
     assert code == 0
+    printed = capsys.readouterr().out
+    assert "Jacobian rollouts (tangents)" in printed and "step 1: screen" in printed  # --profile's table
     report = json.loads((out / "report.json").read_text())
     assert report["discrepancy"] is False and report["cause"] is None
     assert report["parameters"] == {} and report["gain"] == 0.0
