@@ -99,8 +99,9 @@ def cmd_simulate(args) -> int:
     model = scene.model
     if args.views and model.dim != 3:
         raise JaxmpmError("--views needs a 3D scene")
-    print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, "
-          f"{model.frames} frames x {model.substeps} substeps (dt = {model.dt:.3g} s)", file=sys.stderr)
+    print(f"scene {args.scene}: {model.num_particles} particles, grid {model.grid.shape}, {model.frames} frames",
+          file=sys.stderr)
+    _say_step(model, scene.params)
     with _progress_bar(model.frames - 1, "simulate") as bar:
         traj = run_frames(model, scene.params, on_frame=lambda i: bar.update(1))
     positions = np.asarray(traj.x)
@@ -145,6 +146,23 @@ def _write_particle_video(path: Path, positions: np.ndarray, model, obs) -> None
         particle_video(path, positions, model)
 
 
+def _say_step(model, params, when: str = "") -> None:
+    """One line on stderr: the substeps and the stress-wave stability floor
+    (:func:`jaxmpm.step.stable_substeps`), so that a user neither over-refines dt nor waits for
+    a run that will stop at its first frame."""
+    from .step import stable_substeps
+
+    need = stable_substeps(model, params)
+    line = (f"explicit step: {model.substeps} substeps per frame (dt = {model.dt:.3g} s); stable from {need}{when} "
+            f"(stress wave c dt/dx <= 1; particle speeds are checked every frame)")
+    if model.substeps < need:
+        line = f"WARNING: {line}: the step is unstable{when}; set substeps >= {need} in the scene"
+    elif model.substeps >= 2 * need:
+        line += (f"; {model.substeps / need:.1f}x the floor: fewer substeps would be faster, if a dt/2 rerun "
+                 "shows the accuracy holds")
+    print(line, file=sys.stderr)
+
+
 # --------------------------------------------------------------------------- fit
 
 
@@ -166,6 +184,7 @@ def cmd_fit(args) -> int:
     say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     print(f"fitting {', '.join(names)} to {args.observations} ({len(obs.times)} frames) with {args.method}",
           file=sys.stderr)
+    _say_step(scene.model, scene.params, when=" at the initial guess")
 
     def progress(i, loss):
         if not args.quiet:
@@ -229,6 +248,7 @@ def cmd_discover(args) -> int:
         if not args.quiet:
             print(line, file=sys.stderr)
 
+    _say_step(scene.model, scene.params, when=" at the initial guess")
     result = discover(
         scene.model, scene.params, obs, names=names, extensions=exts, holdout=args.holdout, top=args.top,
         min_gain=args.min_gain, alpha=args.alpha, max_extensions=args.max_extensions, max_iter=args.max_iter,

@@ -350,6 +350,35 @@ def test_lm_with_ftol_stops_when_its_line_search_gains_less_than_ftol():
     assert out.timing["escapes"] >= 1 and float(out.y[0]) < 0.0
 
 
+def test_lm_with_ftol_spends_no_trial_where_the_gauss_newton_step_promises_less():
+    """Residuals whose part the parameters can explain is 1e-6 (the loss 2, the Gauss-Newton
+    step's promise 1e-12): with ``ftol`` the solve ends at the start, no trial point spent and
+    the Jacobian taken there kept for the covariance; without it the step is taken. Far from
+    the minimum (a promise above ``ftol``) the solve goes on as before."""
+    from jaxmpm.identify.solvers import levenberg_marquardt
+
+    evaluations = []
+
+    def residuals(v):  # columns (1, 0, 1 + 0.2 v0) and (0, 1, 0); minimum at v = (0, -1e-6)
+        evaluations.append(np.array(v))
+        return np.array([1.0 + v[0], 1e-6 + v[1], -1.0 + v[0] + 0.1 * v[0] ** 2])
+
+    def jacobian(v):
+        return np.array([[1.0, 0.0], [0.0, 1.0], [1.0 + 0.2 * v[0], 0.0]])
+
+    kwargs = dict(jacobian=jacobian, max_steps=40, rtol=1e-6, atol=1e-12, scaled=True)
+    out = levenberg_marquardt(residuals, np.zeros(2), ftol=1e-5, **kwargs)
+    assert out.converged and "promises to lower the loss by less than ftol" in out.message, out.message
+    assert len(evaluations) == 1 and out.timing["rejected_steps"] == 0 and np.array_equal(out.y, np.zeros(2))
+    np.testing.assert_array_equal(out.jacobian[1][1], jacobian(np.zeros(2)))  # (r, J) at the estimate
+    evaluations.clear()
+    out = levenberg_marquardt(residuals, np.zeros(2), **kwargs)
+    assert len(evaluations) > 1 and out.y[1] == pytest.approx(-1e-6, rel=1e-3)
+    evaluations.clear()
+    out = levenberg_marquardt(residuals, np.array([0.5, 0.0]), ftol=1e-5, **kwargs)
+    assert out.converged and abs(out.y[0]) < 1e-2 and len(evaluations) > 2, (out.message, out.y)
+
+
 def _slab_residuals(lo, hi, height):
     """Host residuals of ``v (1,)``, smooth with their minimum at 3, plus ``height`` on every
     entry inside the slab ``lo < v < hi``: a jump of the loss (a contact switch) that the

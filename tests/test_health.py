@@ -8,11 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from collider_scenes import drop_run, drop_spec
+from scenes import block_spec
 
 from jaxmpm.cli import main
 from jaxmpm.errors import SimulationError
 from jaxmpm.scene import load_scene
-from jaxmpm.step import ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, unhealthy, wave_cfl
+from jaxmpm.step import (ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, stable_substeps, unhealthy,
+                         wave_cfl)
 
 #: Issue 14's scene: sand dropped at 1 m/s onto a box 2 cells thick with 40 substeps per
 #: frame (stress-wave CFL 1.27). It used to run to the end while the sand was thrown upward
@@ -65,6 +67,48 @@ def test_too_large_dt_stops_before_the_first_frame_with_a_stable_dt(tmp_path, co
     # the dt it suggests (80 substeps) is stable: wave CFL 0.64
     fine = load_scene(issue_scene(tmp_path, collider, substeps=80))
     assert float(wave_cfl(fine.model, fine.params)) < 0.7
+
+
+def _analytic_floor(material: dict, dx: float, frame_dt: float) -> int:
+    """Substeps per frame at which ``c dt = dx``: the P-wave speed ``sqrt((lambda + 2 mu) / rho)``
+    of a solid; for the Newtonian fluid the positive root of ``(7 kappa dt^2 + mu dt) / rho = dx^2``."""
+    rho = material.get("density", 1000.0)
+    if material["model"] == "elastic":
+        E, nu = material["E"], material["nu"]
+        c = np.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
+        return int(np.ceil(frame_dt * c / dx))
+    kappa, mu = material["kappa"], material["mu"]
+    dt = (-mu + np.sqrt(mu**2 + 28 * kappa * rho * dx**2)) / (14 * kappa)
+    return int(np.ceil(frame_dt / dt))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("material", [{"model": "elastic", "E": 2e5, "nu": 0.3},
+                                      {"model": "newtonian", "mu": 30.0, "kappa": 2e4}], ids=["elastic", "newtonian"])
+@pytest.mark.parametrize("substeps", [3, 400])
+def test_stable_substeps_is_the_stress_wave_floor(dim, material, substeps):
+    """The fewest stable substeps, found from too few and from many: the wave CFL number is at
+    most 1 there and above it one substep fewer, and it is the analytic floor (within the
+    rounding of a count whose exact value may sit on an integer)."""
+    scene = load_scene(block_spec(dim, material, substeps=substeps))
+    m, p = scene.model, scene.params
+    n = stable_substeps(m, p)
+    assert float(wave_cfl(m.with_substeps(n), p)) <= 1.0 < float(wave_cfl(m.with_substeps(n - 1), p))
+    expected = _analytic_floor(material, m.grid.dx, m.frame_dt)
+    assert abs(n - expected) <= 1 and n > 5, (n, expected)
+
+
+def test_stable_substeps_of_the_issue_scene_and_the_cli_line(tmp_path, capsys):
+    """Issue 14's sand at 40 substeps (wave CFL 1.27) needs 51; ``jaxmpm simulate`` says so
+    before the run stops at frame 0; at 400 it says the floor is ~8x below what it runs."""
+    scene = load_scene(issue_scene(tmp_path, "plane"))
+    assert stable_substeps(scene.model, scene.params) == 51
+    main(["simulate", str(issue_scene(tmp_path, "plane")), "--out", str(tmp_path / "a.npz")])
+    err = capsys.readouterr().err
+    assert "40 substeps per frame" in err and "stable from 51" in err and "WARNING" in err, err
+    code = main(["simulate", str(issue_scene(tmp_path, "plane", substeps=400)), "--out", str(tmp_path / "b.npz")])
+    err = capsys.readouterr().err
+    assert code == 0 and "stable from 51" in err and "7.8x" in err and "WARNING" not in err, err
 
 
 def test_cli_simulate_exits_2_on_the_issue_scene_with_a_box(tmp_path, capsys):

@@ -278,7 +278,8 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
     than :data:`CREEP` at a Gauss-Newton stationary point), ``"rough"``
     (stuck away from one), ``"unstable"`` (trial steps made the simulation unstable), ``"cap"``
     (iteration limit), ``"cap-stationary"`` (iteration limit at a Gauss-Newton stationary
-    point: converged) or ``"resolution"`` (a line search gained less than ``ftol``: converged)."""
+    point: converged), ``"resolution"`` (a line search gained less than ``ftol``: converged) or
+    ``"promise"`` (the Gauss-Newton step promises less than ``ftol``: converged)."""
     n = f"{iterations} iteration{'s' * (iterations != 1)}"
     return {
         "converged": f"converged in {n}",
@@ -287,6 +288,8 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
                        "at this precision)"),
         "resolution": (f"converged in {n} (trial steps were rejected and the line search along the Gauss-Newton "
                        "step lowered the loss by less than ftol, the resolution asked for)"),
+        "promise": (f"converged in {n} (the Gauss-Newton step promises to lower the loss by less than ftol, "
+                    "the resolution asked for)"),
         "floor": (f"converged in {n} (at the loss's round-off floor: the Gauss-Newton step promises less than "
                   "the loss's measured round-off noise, so no step can be told from noise; parameters in poorly "
                   "determined directions are known only to their std)"),
@@ -364,8 +367,11 @@ def levenberg_marquardt(
         max_steps: trial points (rejected ones included); ``rtol``, ``atol``: the tolerances.
         progress: ``progress(offset + iteration, loss)`` every iteration.
         ftol: an accepted step that lowers the loss by less than this fraction also passes
-            the tolerance test (then checked like the Cauchy test's pass); and a line search
-            (below) that lowers it by less ends the solve, converged to this resolution.
+            the tolerance test (then checked like the Cauchy test's pass); a line search
+            (below) that lowers it by less ends the solve, converged to this resolution; and
+            so does an accepted point (the start included) where the Gauss–Newton step (within
+            the bounds) promises less: no trial is spent on a decrease the caller does not
+            resolve (e.g. parameters the data barely see).
         scaled: damp each parameter by its own curvature (Marquardt: ``D = |J_j|`` at the
             start, first damping :data:`MARQUARDT_START` of it) instead of optimistix's
             identity, and hold the parameters the data do not see (:data:`INERT`): invariant
@@ -500,6 +506,17 @@ def levenberg_marquardt(
             if inert.any():  # held where they are: their bounds close on them
                 lo, hi = bounds if bounds is not None else (np.full(y.shape, -np.inf), np.full(y.shape, np.inf))
                 bounds = (np.where(inert, y, lo), np.where(inert, y, hi))
+        if accept and ftol is not None:  # at a new point: does the linear model promise ftol at all?
+            t_check = time.perf_counter()
+            delta, _ = _gauss_newton_from(r, J, y, rtol, bounds)
+            promised = float(r @ r) - float(np.sum((r + J @ delta) ** 2)) if delta is not None else math.inf
+            checks_s += time.perf_counter() - t_check
+            if promised < ftol * float(r @ r):
+                steps_s.append(time.perf_counter() - t_step)
+                if progress is not None:
+                    progress(offset + iterations, losses[-1])
+                at_y, converged, verdict = (r / scale, J / scale), True, "promise"
+                break
         if bounds is None:
             y_eval = y + _damped_step(r, J, step_size, eps, D)
         else:
@@ -564,8 +581,8 @@ def levenberg_marquardt(
         how = "floor"
     elif crept_stationary:
         how = "creep"
-    elif verdict == "resolution":
-        how = "resolution"
+    elif verdict in ("resolution", "promise"):
+        how = verdict
     elif stalled:  # the next trial point: is the simulation unstable there?
         unhealthy = not np.all(np.isfinite(evaluate(y_eval)[0]))
         if unhealthy:
