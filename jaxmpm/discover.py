@@ -359,6 +359,7 @@ class _Problem:
         self.lower = np.concatenate([en.lower for en in self.entries])
         self.upper = np.concatenate([en.upper for en in self.entries])
         self.costs = _Costs()
+        self._remembered: list = []  # (key, residuals), the latest first
 
     # ---- vectors
 
@@ -439,10 +440,21 @@ class _Problem:
             self.costs.call(("rollout", i, substeps_factor), seconds)
         return out
 
+    #: how many recent residual evaluations are remembered (the workflow asks again for points
+    #: its solver has just evaluated: a fit's estimate, a refit's start)
+    REMEMBERED = 4
+
     def residuals(self, theta, substeps_factor: int = 1, trajectories=None, training_only: bool = False) -> np.ndarray:
         """All residuals at ``theta``; with ``training_only``, sequences whose data are all held
-        out are not simulated (their entries are 0)."""
+        out are not simulated (their entries are 0). The last :data:`REMEMBERED` evaluations
+        are returned again without a rollout."""
         skip = self.skip if training_only else frozenset()
+        key = None
+        if trajectories is None:
+            key = (np.asarray(theta, np.float64).tobytes(), substeps_factor, skip)
+            known = next((r for k, r in self._remembered if k == key), None)
+            if known is not None:
+                return known.copy()
         trajs = trajectories or self.trajectories(theta, substeps_factor, skip)
         rs = []
         for sd, tr in zip(self.seqs, trajs):
@@ -457,8 +469,10 @@ class _Problem:
             if not ok:
                 r = np.full_like(r, np.nan)
             rs.append(r)
-        r = np.concatenate(rs)
-        return np.where(self.groups.entry_group >= 0, r, 0.0)
+        r = np.where(self.groups.entry_group >= 0, np.concatenate(rs), 0.0)
+        if key is not None:
+            self._remembered = [(key, r.copy()), *self._remembered][:self.REMEMBERED]
+        return r
 
     def jacobian(self, theta, cols) -> np.ndarray:
         """Columns ``cols`` of the residual Jacobian ``(M, len(cols))``: per sequence, the
@@ -1062,7 +1076,12 @@ def discover(
             base_cols = problem.columns(current_names)
             ext_cols = {e: problem.columns(problem.ext_names(e)) for e in remaining}
             all_cols = np.concatenate([base_cols] + [ext_cols[e] for e in remaining])
-            J = problem.jacobian(current.theta, all_cols)
+            if current.jacobian is not None and current.free == current_names:
+                # the current fit's last Jacobian is its columns at this point (training rows,
+                # which are all the screen weighs): only the extensions' columns are new
+                J = np.concatenate([current.jacobian, problem.jacobian(current.theta, all_cols[len(base_cols):])], axis=1)
+            else:
+                J = problem.jacobian(current.theta, all_cols)
             w = entry_train.astype(float)
             local = {c: i for i, c in enumerate(all_cols)}
             b_loc = np.array([local[c] for c in base_cols], int)

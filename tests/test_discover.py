@@ -86,11 +86,13 @@ def test_drag_is_found_and_the_cost_of_each_phase_is_accounted_for():
         assert 0 <= r["rollout_s"] + r["jvp_s"] <= r["wall_s"] and 0 <= r["compile_s"] <= r["wall_s"], r
     for key, total in t["totals"].items():
         assert total == pytest.approx(sum(r[key] for r in t["phases"])), key
-    # what was spent: the first residuals; the screen's columns (every parameter, the base's and
-    # each extension's) in chunks of at most JVP_BATCH tangents on one primal; a fit per LM run
+    # what was spent: the first residuals; the screen's columns (each extension's: the base
+    # fit's last Jacobian has the base's) in chunks of at most JVP_BATCH tangents on one primal;
+    # a fit per LM run
     assert phases["setup"]["rollouts"] == 1 and phases["setup"]["jvp_rollouts"] == 0
     screen = phases["step 1: screen"]
-    columns = result.problem.size
+    problem = result.problem
+    columns = problem.size - len(problem.columns(problem.base_names()))
     assert screen["jvp_rollouts"] == -(-columns // D.JVP_BATCH) and columns <= screen["tangents"] < columns + screen["jvp_rollouts"]
     assert screen["rollouts"] == 0 and screen["fits"] == 0
     base = phases["base fit"]
