@@ -52,6 +52,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from .colliders.base import row_dot
 from .errors import JaxmpmError
 
 __all__ = [
@@ -390,7 +391,7 @@ def stress(model, params, state, F, aux, tau):
     if "heterogeneity" in ext:
         g = jnp.asarray(ext["heterogeneity"]["gradient"]).astype(tau.dtype)
         xi = _reference_coordinates(model, tau.dtype)
-        scale = 10.0 ** (xi @ g)
+        scale = 10.0 ** row_dot(xi, g)
         tau = tau * scale[:, None, None]
     return tau
 
@@ -416,7 +417,7 @@ def grid_velocity(model, params, v):
     dt = model.dt
     k1 = jnp.asarray(ext["drag"]["linear"]).astype(v.dtype)
     k2 = jnp.asarray(ext["drag"]["quadratic"]).astype(v.dtype)
-    speed = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True) + 1e-12)
+    speed = jnp.sqrt(row_dot(v, v, keepdims=True) + 1e-12)  # (unrolled: a reduction over D is slow on CPU)
     return v / (1.0 + dt * (k1 + k2 * speed))
 
 

@@ -44,7 +44,7 @@ def row_matvec(m, v):
 
 
 def rows_times(x, r):
-    """``x @ r`` for rows ``x (..., D)`` and a small constant ``r (D, D)``, unrolled."""
+    """``x @ r`` for rows ``x (..., D)`` and a small matrix ``r (D, D)``, unrolled (see :func:`row_dot`)."""
     out = x[..., 0:1] * r[0]
     for d in range(1, x.shape[-1]):
         out = out + x[..., d : d + 1] * r[d]
@@ -334,14 +334,14 @@ class RigidCollider(Collider):
         if velocity is None and angular_velocity is None and not self.moving:
             return x
         c, r = self.rigid_transform(time, velocity, angular_velocity, x.dtype)
-        return jnp.asarray(self.pivot, x.dtype) + (x - c) @ r
+        return jnp.asarray(self.pivot, x.dtype) + rows_times(x - c, r)
 
     def to_world_vectors(self, n, time, angular_velocity=None):
         """Rotate rest-frame vectors (normals) ``n (M, D)`` to the world frame at ``time``."""
         if angular_velocity is None and not self.rotating:
             return n
         _, r = self.rigid_transform(time, None, angular_velocity, n.dtype)
-        return n @ r.T
+        return rows_times(n, r.T)
 
     def velocity_at(self, x, time, velocity=None, angular_velocity=None):
         """Surface velocity ``v + w x (x - c(t))`` at world points ``x (M, D)``, m/s."""
@@ -352,7 +352,7 @@ class RigidCollider(Collider):
         if getattr(self, "motion", None) is not None and velocity is None and angular_velocity is None:
             # Scripted motion: d/dt of x = c(t) + R(t)(X - c0) is c' + R' R^T (x - c).
             (c, r), (dc, dr) = jax.jvp(lambda s: self.rigid_transform(s, dtype=dtype), (t,), (jnp.ones_like(t),))
-            return dc + (x - c) @ (dr @ r.T).T
+            return dc + rows_times(x - c, (dr @ r.T).T)
         v = jnp.asarray(self.velocity if velocity is None else velocity).astype(dtype)
         w = jnp.asarray(self.angular_velocity if angular_velocity is None else angular_velocity).astype(dtype)
         c = jnp.asarray(self.pivot, dtype) + v * t
