@@ -27,7 +27,6 @@ from jaxtyping import Array, Bool, Float, Int
 from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
-from .colliders.base import row_dot
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
@@ -380,7 +379,7 @@ def projected_speed2(
 
 
 def _row_norm2(v):
-    return row_dot(v, v)  # unrolled: XLA's CPU reduction over a last axis of 2 or 3 is slow
+    return jnp.sum(v * v, axis=-1)
 
 
 @full_precision

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import SceneError
-from .base import RigidCollider, init_motion, row_dot
+from .base import RigidCollider, init_motion
 
 class Plane(RigidCollider):
     """An infinite half-space ``{x : (x - point)·normal <= 0}`` (the solid side).
@@ -67,5 +67,5 @@ class Plane(RigidCollider):
 
     def _local_signed_distance(self, X):
         n = jnp.asarray(self.normal, X.dtype)
-        sd = row_dot(X - jnp.asarray(self.point, X.dtype), n)
+        sd = (X - jnp.asarray(self.point, X.dtype)) @ n
         return sd, jnp.broadcast_to(n, X.shape)
