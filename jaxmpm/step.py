@@ -379,6 +379,8 @@ def projected_speed2(
 
 
 def _row_norm2(v):
+    # (a reduction, not colliders.row_dot's unrolled form: under the max over the grid that
+    # made a 3D step over a floor 1.5x slower, measured in session 22)
     return jnp.sum(v * v, axis=-1)
 
 
