@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import extensions as X
+from .fit_report import aligned
 
 PHASES = ("free flight", "impact", "post-contact", "settling")
 
@@ -587,9 +588,7 @@ def _timing_rows(timing: dict) -> list[tuple[str, ...]]:
 
 def format_timing(discovery) -> str:
     """Where :func:`jaxmpm.discover`'s time went (``discovery.timing``), as a text table."""
-    rows = _timing_rows(discovery.timing)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+    return "\n".join(line.rstrip() for line in aligned(_timing_rows(discovery.timing)))
 
 
 def _json_default(o):

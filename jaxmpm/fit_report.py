@@ -21,6 +21,16 @@ def write_json(path: Path, payload: dict) -> None:
     atomic_write(path, write)
 
 
+def aligned(rows: list[tuple[str, ...]], rule: bool = False) -> list[str]:
+    """Rows of strings as lines of left-aligned columns two spaces apart; with ``rule``, a line
+    of dashes under the first (the header)."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
+    if rule:
+        lines.insert(1, "  ".join("-" * w for w in widths))
+    return lines
+
+
 def format_table(result, truth: dict | None = None) -> str:
     """The parameters of a :class:`~jaxmpm.fit.FitResult` as an aligned text table.
 
@@ -33,10 +43,7 @@ def format_table(result, truth: dict | None = None) -> str:
         if truth:
             row += (format_value(truth[name]), _error_text(name, value, truth[name]))
         rows.append(row)
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
+    return "\n".join(aligned(rows, rule=True))
 
 
 def format_timing(result) -> str:
@@ -51,9 +58,7 @@ def format_timing(result) -> str:
         rows.append((f"{k} {st['label'][:28]}", str(st["iterations"]), f"{g.get('start_s', 0):.2f}",
                      f"{g.get('step_s', 0):.3f}", f"{g.get('steps_s', 0):.2f}", f"{g.get('checks_s', 0):.2f}",
                      str(g.get("rejected_steps", "-")), f"{g.get('uncertainty_s', 0):.2f}"))
-    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    lines += ["  ".join(c.ljust(w) for c, w in zip(r, widths)) for r in rows]
-    return "\n".join(lines)
+    return "\n".join(lines + aligned(rows))
 
 
 def format_value(v) -> str:
