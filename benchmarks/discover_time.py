@@ -12,6 +12,9 @@ lands, the case is smooth in the hidden effect and converged in dt). `discover`
 gets the base scene only and runs with its defaults (top 3 refits, greedy steps, the dt/2
 check). Prints the verdict, the cause, the held-out gain, the wall and CPU seconds.
 
+The 3D case (``--dim 3``): the same block, 0.2 m deep along z (``--dx 0.01``, ppc 8: 48,000
+particles), on the same floor.
+
     PYTHONPATH=. python benchmarks/discover_time.py [--hidden gravity|none] [--delta 1,0] [--json out.json]
         [--E 3e4 --velocity 0.5,0 --contact sticky]   # a case converged in dt (dt/2 moves it 7 mm)
         [--hidden drag --frames 24 --substeps 250 --frame-dt 0.01667 --velocity 1,1.5]   # free flight
@@ -32,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 def scene_arguments(ap: argparse.ArgumentParser) -> None:
     """The scene's command-line options (shared with discover_linearity.py)."""
+    ap.add_argument("--dim", type=int, default=2, choices=(2, 3), help="2D, or 3D (the block 0.2 m deep along z)")
     ap.add_argument("--E", type=float, default=3e3, help="Young's modulus, Pa")
     ap.add_argument("--velocity", default="1.5,0.5", help="the throw, m/s (x,y)")
     ap.add_argument("--contact", default="slip", choices=("slip", "sticky"), help="the floor's contact")
@@ -42,16 +46,27 @@ def scene_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--frame-dt", type=float, default=1.0 / 24.0, help="seconds between frames")
 
 
+def vector(text: str, dim: int) -> list[float]:
+    """A comma-separated vector, padded with zeros to ``dim`` components (``"1,0.5"`` in 3D: (1, 0.5, 0))."""
+    v = [float(c) for c in text.split(",")]
+    if len(v) > dim:
+        raise SystemExit(f"{text!r} has {len(v)} components; the scene is {dim}D")
+    return v + [0.0] * (dim - len(v))
+
+
 def block_scene(args):
     """The thrown elastic block of the module docstring, from :func:`scene_arguments`' options."""
     from scenes import block_spec
 
     from jaxmpm.scene import load_scene
 
-    velocity = [float(v) for v in args.velocity.split(",")]
-    spec = block_spec(2, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
-                      substeps=args.substeps, floor={"point": [0.0, 0.1], "normal": [0.0, 1.0], "contact": args.contact},
-                      lo=[0.2, 0.1 + args.height], hi=[0.4, 0.25 + args.height], velocity=velocity, ppc=4)
+    d = args.dim
+    velocity = vector(args.velocity, d)
+    spec = block_spec(d, {"model": "elastic", "E": args.E, "nu": 0.3}, dx=args.dx, frames=args.frames,
+                      substeps=args.substeps,
+                      floor={"point": vector("0,0.1", d), "normal": vector("0,1", d), "contact": args.contact},
+                      lo=[0.2, 0.1 + args.height, 0.4][:d], hi=[0.4, 0.25 + args.height, 0.6][:d], velocity=velocity,
+                      ppc=2**d)
     spec["frame_dt"] = args.frame_dt
     return load_scene(spec)
 
@@ -70,11 +85,11 @@ def main() -> None:
     scene_arguments(ap)
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    velocity = [float(v) for v in args.velocity.split(",")]
+    velocity = vector(args.velocity, args.dim)
     scene = block_scene(args)
     m, p = scene.model, scene.params
     ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]
-    delta = [float(v) for v in args.delta.split(",")]
+    delta = vector(args.delta, args.dim)
     hidden = {"gravity": {"gravity": {"delta": delta}}, "friction": {"collider_friction": {"floor": args.friction}},
               "drag": {"drag": {"linear": args.drag}}, "none": None}[args.hidden]
     truth = X.enable(m, p, ids, hidden)
@@ -87,7 +102,7 @@ def main() -> None:
     result = discover(m, p, obs, progress=lambda line: print(f"  [{time.perf_counter() - t0:7.1f} s] {line}", flush=True))
     row = {"hidden": args.hidden, "delta": delta if args.hidden == "gravity" else None,
            "friction": args.friction if args.hidden == "friction" else None,
-           "drag": args.drag if args.hidden == "drag" else None, "frame_dt": args.frame_dt, "height": args.height, "E": args.E, "velocity": velocity,
+           "drag": args.drag if args.hidden == "drag" else None, "frame_dt": args.frame_dt, "height": args.height, "E": args.E, "velocity": velocity, "dim": args.dim, "dx": args.dx,
            "contact": args.contact, "frames": args.frames, "substeps": args.substeps, "particles": int(m.num_particles), "steps": args.frames * args.substeps,
            "discrepancy": bool(result.discrepancy), "cause": result.cause, "causes": list(result.causes),
            "gain": None if result.gain is None else float(result.gain), "verdict": result.verdict,

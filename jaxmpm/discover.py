@@ -356,6 +356,7 @@ class _Problem:
             self.slices[en.name] = slice(i, i + en.size)
             i += en.size
         self.size = i
+        self.column_extension = [en.extension for en in self.entries for _ in range(en.size)]  # None: base
         self.lower = np.concatenate([en.lower for en in self.entries])
         self.upper = np.concatenate([en.upper for en in self.entries])
         self.costs = _Costs()
@@ -383,8 +384,19 @@ class _Problem:
     def entry(self, name) -> _Entry:
         return next(en for en in self.entries if en.name == name)
 
-    def unpack(self, theta, i: int) -> Params:
-        """The parameter pytree of sequence ``i`` at ``theta`` (traceable)."""
+    def active(self, theta, keep=()) -> frozenset[str]:
+        """The extensions a rollout at ``theta`` carries: those named in ``keep`` (whose
+        columns are wanted) and those with an offset away from its null value. The others are
+        left out: at null an extension is the base model (see :mod:`jaxmpm.extensions`), yet
+        its hooks still cost the step (all nine candidates of the 3D drag case together made a
+        rollout 2.4x slower)."""
+        theta = np.asarray(theta)
+        moved = {en.extension for en in self.entries if en.kind == "ext" and np.any(theta[self.slices[en.name]] != 0)}
+        return frozenset(moved | set(keep))
+
+    def unpack(self, theta, i: int, active) -> Params:
+        """The parameter pytree of sequence ``i`` at ``theta`` (traceable) with the extensions
+        in ``active`` (:meth:`active`, decided from a concrete ``theta``)."""
         sd = self.seqs[i]
         p = sd.params
         for en, paths in zip(self.entries, self.paths):
@@ -394,10 +406,11 @@ class _Problem:
             leaf = get_param(p, path)
             val = from_unconstrained(en.name, theta[self.slices[en.name]])
             p = set_param(p, path, jnp.reshape(val, jnp.shape(leaf)).astype(jnp.asarray(leaf).dtype))
-        ext = {k: dict(v) for k, v in p["extensions"].items()}
+        ext = {k: dict(v) for k, v in p["extensions"].items() if k in active}
         dtype = jnp.asarray(p["gravity"]).dtype
         for s in sd.specs:
-            ext[s.extension][s.key] = jnp.reshape(theta[self.slices[s.name]], s.shape).astype(dtype)
+            if s.extension in active:
+                ext[s.extension][s.key] = jnp.reshape(theta[self.slices[s.name]], s.shape).astype(dtype)
         p = dict(p)
         p["extensions"] = ext
         return p
@@ -430,14 +443,15 @@ class _Problem:
                 out.append(None)
                 continue
             clock = _time.perf_counter()
-            p = self.unpack(jnp.asarray(theta), i)
+            active = self.active(theta)
+            p = self.unpack(jnp.asarray(theta), i, active)
             model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
             frames, ok = _rollout(model, p, sd.frames)
             out.append((frames, bool(ok), p))  # (bool waits for the rollout)
             seconds = _time.perf_counter() - clock
             self.costs.rollouts += 1
             self.costs.rollout_s += seconds
-            self.costs.call(("rollout", i, substeps_factor), seconds)
+            self.costs.call(("rollout", i, substeps_factor, active), seconds)
         return out
 
     #: how many recent residual evaluations are remembered (the workflow asks again for points
@@ -476,9 +490,11 @@ class _Problem:
 
     def jacobian(self, theta, cols) -> np.ndarray:
         """Columns ``cols`` of the residual Jacobian ``(M, len(cols))``: per sequence, the
-        columns its parameters depend on, up to :data:`JVP_BATCH` tangents to a rollout sharing
-        one primal (chunks of one size, the last padded with zero tangents: one compiled
-        program per chunk size)."""
+        columns its parameters depend on, in order of the parameter vector (so grouped by
+        extension), up to :data:`JVP_BATCH` tangents to a rollout sharing one primal (chunks
+        of one size, the last padded with zero tangents). Each chunk's rollout carries only
+        the extensions :meth:`active` names for its columns."""
+        theta_np = np.asarray(theta)
         theta = jnp.asarray(theta, _F())
         M = len(self.groups.entry_group)
         J = np.zeros((M, len(cols)))
@@ -488,36 +504,41 @@ class _Problem:
             start = rows.stop
             if i in self.skip:  # held out entirely: no training rows
                 continue
-            p = self.unpack(theta, i)
-            tangents, live = [], []
-            for j, c in enumerate(cols):
+
+            def tangent(c, active, i=i):
                 e = jnp.zeros_like(theta).at[c].set(1.0)
-                tp = jax.jvp(lambda th, i=i: self.unpack(th, i), (theta,), (e,))[1]
-                tp = jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
-                if any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp)):
-                    tangents.append(tp)
-                    live.append(j)
+                p, tp = jax.jvp(lambda th: self.unpack(th, i, active), (theta,), (e,))
+                return jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
+
+            def keep(c):
+                return {self.column_extension[c]} - {None}
+
+            live = [j for j in sorted(range(len(cols)), key=lambda j: cols[j])
+                    if any(bool(jnp.any(leaf != 0)) for leaf in
+                           jax.tree_util.tree_leaves(tangent(cols[j], self.active(theta_np, keep(cols[j])))))]
             if not live:
                 continue
-            t0 = self._t0(p)
             chunks = -(-len(live) // JVP_BATCH)
             size = -(-len(live) // chunks)
             for k in range(0, len(live), size):
-                batch = tangents[k:k + size]
+                chunk = live[k:k + size]
+                active = self.active(theta_np, set().union(*(keep(cols[j]) for j in chunk)))
+                p = self.unpack(theta, i, active)
+                batch = [tangent(cols[j], active) for j in chunk]
                 batch = batch + [jax.tree_util.tree_map(jnp.zeros_like, batch[0])] * (size - len(batch))  # padding
                 stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
                 clock = _time.perf_counter()
                 frames, d_frames = _rollout_jvps(sd.model, p, stacked, sd.frames)
                 dt0 = jax.vmap(self._t0)(stacked)
+                t0 = self._t0(p)
                 dr = np.concatenate([np.asarray(_obs_jvps(o, frames, t0, d_frames, dt0), float)
                                      for o in sd.observables], axis=1)
                 seconds = _time.perf_counter() - clock
                 self.costs.jvp_rollouts += 1
                 self.costs.tangents += size
                 self.costs.jvp_s += seconds
-                self.costs.call(("jvp", i, size), seconds)
-                n = min(size, len(live) - k)
-                J[rows, live[k:k + n]] = dr[:n].T
+                self.costs.call(("jvp", i, size, active), seconds)
+                J[rows, chunk] = dr[:len(chunk)].T
         J[self.groups.entry_group < 0] = 0.0
         return J
 

@@ -40,8 +40,8 @@ def _hidden(kind, extension=None, value=None, seed=0):
     """The base scene and noisy tracks simulated with ``extension`` set to ``value``."""
     scene = load_scene(_spec(kind))
     m, p = scene.model, scene.params
-    ids = [e for e in X.EXTENSIONS if X.applicable(m, e) is None]  # the layout discover compiles
-    truth = X.enable(m, p, ids, {extension: value} if extension else None)
+    # the hidden extension alone: the layout of discover's rollouts once it refits that extension
+    truth = X.enable(m, p, [extension], {extension: value}) if extension else p
     x = np.asarray(_rollout(m, truth, FRAMES)[0].x, float)
     x = x + NOISE * np.random.default_rng(seed).standard_normal(x.shape)
     obs = Observation(times=np.arange(FRAMES) * m.frame_dt, positions=x, point_ids="particles")
@@ -261,6 +261,54 @@ def test_the_screen_jacobian_matches_central_differences(monkeypatch):
     assert np.linalg.norm(J[:, :2]) > 0 and np.all(np.linalg.norm(J, axis=0) > 0)
     monkeypatch.setattr(D, "JVP_BATCH", 3)
     np.testing.assert_allclose(prob.jacobian(theta, cols), J, rtol=1e-10, atol=1e-12 * np.abs(J).max())
+
+
+def test_each_rollout_carries_only_the_extensions_it_needs(monkeypatch):
+    """A rollout carries no extension at the null point, an extension once its offset moves,
+    and a Jacobian chunk the extensions of its columns (columns grouped by extension); the
+    residuals and the Jacobian are those of rollouts with every candidate on (at null an
+    extension is the base model), so leaving the others out only saves their hooks' cost."""
+    D = importlib.import_module("jaxmpm.discover")
+    scene = load_scene(_spec(THROW))
+    m, p = scene.model, scene.params
+    x = np.asarray(_rollout(m, p, FRAMES)[0].x, float)
+    obs = Observation(times=np.arange(FRAMES) * m.frame_dt, positions=x + 1e-3, point_ids="particles")
+    candidates = ["gravity", "drag", "damping", "collider_friction"]
+    prob = D._Problem([Sequence(m, p, obs)], ["E", "nu"], candidates, 64, jnp.float32)
+    carried = []
+
+    def record(real):
+        def wrapped(model, params, *args):
+            carried.append(set(params.get("extensions", {})))
+            return real(model, params, *args)
+        return wrapped
+
+    monkeypatch.setattr(D, "_rollout", record(D._rollout))
+    monkeypatch.setattr(D, "_rollout_jvps", record(D._rollout_jvps))
+    theta = prob.initial()
+    r = prob.residuals(theta)
+    assert carried == [set()]
+    names = ["E", "gravity.delta", "drag.linear", "damping.rate", "collider_friction.floor"]
+    assert all(n in prob.slices for n in names), list(prob.slices)
+    cols = prob.columns(names)[::-1].copy()  # any order: the chunks follow the parameter vector
+    monkeypatch.setattr(D, "JVP_BATCH", 2)
+    carried.clear()
+    J = prob.jacobian(theta, cols)
+    extension_of = {c: prob.column_extension[c] for c in cols}
+    chunks = [sorted(cols)[k:k + 2] for k in range(0, len(cols), 2)]
+    assert carried == [{extension_of[c] for c in chunk} - {None} for chunk in chunks], carried
+    # the same numbers with every candidate carried
+    every = frozenset(candidates)
+    monkeypatch.setattr(prob, "active", lambda theta, keep=(): every)
+    prob._remembered.clear()
+    np.testing.assert_allclose(prob.residuals(theta), r, rtol=1e-6, atol=1e-9)
+    J_every = prob.jacobian(theta, cols)
+    np.testing.assert_allclose(J, J_every, rtol=1e-5, atol=1e-6 * np.abs(J_every).max())
+    assert np.all(np.linalg.norm(J_every, axis=0) > 0)
+    monkeypatch.undo()
+    # an offset away from null: its extension is carried by every rollout
+    theta[prob.slices["drag.linear"]] = 0.5
+    assert prob.active(theta) == {"drag"} and prob.active(theta, {"damping"}) == {"drag", "damping"}
 
 
 def test_discover_rejects_bad_inputs():
