@@ -328,6 +328,14 @@ def test_rigid_motion_3d_and_2d():
     c2, R2 = map(np.asarray, box.rigid_transform(t + eps))
     fd = ((c2 + (X - np.asarray(box.pivot)) @ R2.T) - xw) / eps
     np.testing.assert_allclose(np.asarray(box.velocity_at(jnp.asarray(xw), t)), fd, atol=1e-5)
+    # A plane is placed at t directly (its point and normal moved): the same as the rest frame.
+    plane = Plane([0.5, 0.3, 0.4], [0.2, 1.0, -0.3], velocity=box.velocity, angular_velocity=box.angular_velocity,
+                  pivot=box.pivot)
+    sd0, n0 = map(np.asarray, plane.signed_distance(jnp.asarray(X), 0.0))
+    sdt, nt = map(np.asarray, plane.signed_distance(jnp.asarray(xw), t))
+    np.testing.assert_allclose(sdt, sd0, atol=1e-12)
+    np.testing.assert_allclose(nt, n0 @ R.T, atol=1e-12)
+    np.testing.assert_allclose(sd0, (X - plane.point) @ np.asarray(plane.normal), atol=1e-12)
     # 2D: scalar angular velocity
     sq = Box([0.4, 0.4], [0.6, 0.5], angular_velocity=[2.0], name="sq")
     v = np.asarray(sq.velocity_at(jnp.asarray([[0.7, 0.45]]), 0.0))

@@ -65,6 +65,20 @@ class Plane(RigidCollider):
         """A plane is unbounded: ``[-inf, +inf]`` on every axis."""
         return np.stack([np.full(self.dim, -np.inf), np.full(self.dim, np.inf)])
 
+    def signed_distance(self, x, time):
+        """Signed distance (``+`` side positive) and unit normal at world points ``x (M, D)``.
+
+        The distance to a plane is affine in the point, so a moving plane is placed once at
+        ``time`` (its point and normal moved) instead of taking every query point to its rest
+        frame and every normal back: on a 3D grid that is two ``(M, D) x (D, D)`` products
+        fewer per substep."""
+        if not self.moving:
+            return self._local_signed_distance(x)
+        c, r = self.rigid_transform(time, dtype=x.dtype)
+        n = r @ jnp.asarray(self.normal, x.dtype)
+        point = c + r @ (jnp.asarray(self.point, x.dtype) - jnp.asarray(self.pivot, x.dtype))
+        return (x - point) @ n, jnp.broadcast_to(n, x.shape)
+
     def _local_signed_distance(self, X):
         n = jnp.asarray(self.normal, X.dtype)
         sd = (X - jnp.asarray(self.point, X.dtype)) @ n
