@@ -388,7 +388,7 @@ class _Problem:
         """The extensions a rollout at ``theta`` carries: those named in ``keep`` (whose
         columns are wanted) and those with an offset away from its null value. The others are
         left out: at null an extension is the base model (see :mod:`jaxmpm.extensions`), yet
-        its hooks still cost the step (all nine candidates of the 3D drag case together made a
+        its hooks still cost the step (all ten candidates of the 3D drag case together made a
         rollout 2.4x slower)."""
         theta = np.asarray(theta)
         moved = {en.extension for en in self.entries if en.kind == "ext" and np.any(theta[self.slices[en.name]] != 0)}

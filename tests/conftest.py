@@ -7,7 +7,11 @@ for that test's setup, call and teardown only (``jax.enable_x64`` is a scoped co
 Compiled programs go to a persistent compilation cache of this run only (a fresh folder,
 shared by the xdist workers and the commands the tests start, removed at the end): a
 program compiled by one test is loaded by the next that needs it, and nothing is kept
-between runs or read from the user's cache.
+between runs or read from the user's cache. The xdist workers read it but do not write it:
+in two CI runs of session 23 a worker aborted inside XLA's serialisation of an executable
+for the cache (``executable.serialize()``, the same test both times, after ~600 others in
+that worker; the test alone, writing its programs, passes), so only the commands the tests
+start and a run without xdist write entries.
 """
 
 import os
@@ -26,6 +30,8 @@ def pytest_configure(config):
     if not hasattr(config, "workerinput"):  # the controller (or a run without xdist): this run's folder
         config._jaxmpm_cache = os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix="jaxmpm-test-xla-")
     jax.config.update("jax_compilation_cache_dir", os.environ[CACHE_ENV])  # this run's, whatever JAX's env says
+    if hasattr(config, "workerinput"):  # an xdist worker: read the cache, never write it (see above)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", float("inf"))
     config.addinivalue_line("markers", "x64: run this test with float64 enabled (jax.enable_x64), scoped to the test")
     # without x64 a float64 request silently gives float32: make it an error, so a test that
     # needs float64 and lacks the marker fails instead of passing on weaker arithmetic
