@@ -9,8 +9,8 @@ shared by the xdist workers and the commands the tests start, removed at the end
 program compiled by one test is loaded by the next that needs it, and nothing is kept
 between runs or read from the user's cache. The xdist workers read it but do not write it:
 in two CI runs of session 23 a worker aborted inside XLA's serialisation of an executable
-for the cache (``executable.serialize()``, the same test both times, after ~600 others in
-that worker; the test alone, writing its programs, passes), so only the commands the tests
+for the cache (``executable.serialize()``, the same test both times, at 91 % of the run;
+the test alone, writing its programs, passes), so only the commands the tests
 start and a run without xdist write entries.
 """
 
