@@ -505,17 +505,20 @@ class _Problem:
             if i in self.skip:  # held out entirely: no training rows
                 continue
 
-            def tangent(c, active, i=i):
-                e = jnp.zeros_like(theta).at[c].set(1.0)
-                p, tp = jax.jvp(lambda th: self.unpack(th, i, active), (theta,), (e,))
-                return jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
-
             def keep(c):
                 return {self.column_extension[c]} - {None}
 
-            live = [j for j in sorted(range(len(cols)), key=lambda j: cols[j])
-                    if any(bool(jnp.any(leaf != 0)) for leaf in
-                           jax.tree_util.tree_leaves(tangent(cols[j], self.active(theta_np, keep(cols[j])))))]
+            # each column's tangent once, with every requested column's extension on; a chunk
+            # then keeps only its own extensions' entries (the others carry zeros)
+            every = self.active(theta_np, set().union(*(keep(c) for c in cols)))
+            tangents = {}
+            for j in sorted(range(len(cols)), key=lambda j: cols[j]):
+                e = jnp.zeros_like(theta).at[cols[j]].set(1.0)
+                p, tp = jax.jvp(lambda th, i=i: self.unpack(th, i, every), (theta,), (e,))
+                tp = jax.tree_util.tree_map(lambda a, b: jnp.asarray(b).astype(jnp.asarray(a).dtype), p, tp)
+                if any(bool(jnp.any(leaf != 0)) for leaf in jax.tree_util.tree_leaves(tp)):
+                    tangents[j] = tp
+            live = list(tangents)
             if not live:
                 continue
             chunks = -(-len(live) // JVP_BATCH)
@@ -524,7 +527,8 @@ class _Problem:
                 chunk = live[k:k + size]
                 active = self.active(theta_np, set().union(*(keep(cols[j]) for j in chunk)))
                 p = self.unpack(theta, i, active)
-                batch = [tangent(cols[j], active) for j in chunk]
+                batch = [dict(tangents[j], extensions={x: v for x, v in tangents[j]["extensions"].items() if x in active})
+                         for j in chunk]
                 batch = batch + [jax.tree_util.tree_map(jnp.zeros_like, batch[0])] * (size - len(batch))  # padding
                 stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
                 clock = _time.perf_counter()
