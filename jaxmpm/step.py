@@ -27,6 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
+from .constitutive.base import matmul
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
@@ -85,7 +86,7 @@ def material_update(
     dt = model.dt
     dim = state.dim
     eye = jnp.eye(dim, dtype=state.F.dtype)
-    F_trial = jnp.einsum("nij,njk->nik", eye + dt * state.C, state.F)
+    F_trial = matmul(eye + dt * state.C, state.F)
     Fs, auxs, taus = [], [], []
     for body, sl, bp in zip(model.bodies, model.body_slices(), params["bodies"]):
         F, aux, tau = _ext.material_update(body.material, F_trial[sl], state.C[sl], state.aux[sl], bp, dt, params)
@@ -136,6 +137,9 @@ def p2g(
     # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
     columns = [grid.dx * affine[:, :, d] for d in range(dim)]
     base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
+    # Stored once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
+    # tangents, back through the material's stress) inside each of the 3^D row fusions.
+    columns, base_momentum = cpic.materialize((columns, base_momentum), st.base[0, 0] >= 0)
     incompatible = None if contact is None else contact.incompatible_mask()
     rows = []
     for o, offset in enumerate(stencil_offsets(dim)):

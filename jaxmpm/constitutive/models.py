@@ -22,6 +22,7 @@ from .base import (
     Params,
     det,
     lame_from_young,
+    matmul,
     safe_norm,
 )
 from .svd import svd
@@ -187,10 +188,10 @@ class Corotated(Material):
     def kirchhoff(self, F, C, aux, params):
         mu, lam = lame_from_young(params["E"], params["nu"])
         U, _, V = svd(F)
-        R = jnp.einsum("nij,nkj->nik", U, V)
+        R = matmul(U, jnp.swapaxes(V, -1, -2))
         J = det(F)[:, None, None]
         eye = jnp.eye(F.shape[-1], dtype=F.dtype)
-        return 2.0 * mu * jnp.einsum("nij,nkj->nik", F - R, F) + lam * (J - 1.0) * J * eye
+        return 2.0 * mu * matmul(F - R, jnp.swapaxes(F, -1, -2)) + lam * (J - 1.0) * J * eye
 
 
 class Newtonian(Material):

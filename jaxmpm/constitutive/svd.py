@@ -333,7 +333,7 @@ def _svd_jvp(primals, tangents):
     # operands, whereas an elementwise formulation gets the deep forward graph fused
     # (and recomputed per output entry) into the tangent's concatenate fusion.
     Ut = jnp.swapaxes(U, -1, -2)
-    dP = jnp.matmul(jnp.matmul(Ut, dF), V)  # U^T dF V
+    dP = jnp.swapaxes(jnp.matmul(jnp.swapaxes(V, -1, -2), jnp.swapaxes(jnp.matmul(Ut, dF), -1, -2)), -1, -2)  # U^T dF V
     dPt = jnp.swapaxes(dP, -1, -2)
     sym = (dP + dPt) * k_sym
     skew = (dP - dPt) * k_skew
