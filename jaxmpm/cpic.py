@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, flat_index, node_indices, offset_weight, stencil_offsets, stencil_terms
+from .state import Grid, Stencil, flat_index, materialize, node_indices, offset_weight, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):
@@ -955,17 +955,6 @@ def gather_contact(
         v_collider=tuple(vcs),
     )
     return materialize(contact, jnp.isfinite(time))
-
-
-def materialize(tree, token):
-    """``tree`` itself, computed once and stored (``token`` must be a traced True).
-
-    XLA's CPU fusion treats the gather's arithmetic as cheap and re-computes it inside each
-    of the 27 P2G scatter operands and G2P fusions that read the compatibility bits (5x
-    slower steps); ``lax.optimization_barrier`` is expanded away before fusion on CPU. A
-    conditional is a fusion boundary: its output is materialised once.
-    """
-    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
 
 
 #: Floor of the incompatible-node weight ``W`` a ghost velocity is divided by (of a stencil's

@@ -11,7 +11,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 #: Number of padding cells added around the scene's domain on every side, so that the
 #: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
@@ -170,12 +170,35 @@ def compute_stencil(grid: Grid, x: Float[Array, "N D"]) -> Stencil:
     base = jnp.floor(jax.lax.stop_gradient(xi) - 0.5).astype(jnp.int32)
     base = jnp.clip(base, 0, jnp.asarray(grid.shape, jnp.int32) - 3)
     fx = tuple(xi[:, d] - base[:, d].astype(x.dtype) for d in range(x.shape[1]))
-    w = (
-        tuple(0.5 * (1.5 - f) ** 2 for f in fx),
-        tuple(0.75 - (f - 1.0) ** 2 for f in fx),
-        tuple(0.5 * (f - 0.5) ** 2 for f in fx),
-    )
-    return Stencil(base=base, fx=fx, w=w)
+    return Stencil(base=base, fx=fx, w=tuple(zip(*(bspline_weights(f) for f in fx))))
+
+
+def bspline_weights(f: Float[Array, " N"]) -> tuple[Float[Array, " N"], ...]:
+    """Quadratic B-spline weights of the stencil's nodes 0, 1, 2 along one axis, for a
+    particle ``f`` cells above the lowest node (``f`` in [0.5, 1.5))."""
+    return 0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2
+
+
+def bspline_slopes(f: Float[Array, " N"]) -> tuple[Float[Array, " N"], ...]:
+    """``d/df`` of :func:`bspline_weights` (per cell)."""
+    return f - 1.5, 2.0 * (1.0 - f), f - 0.5
+
+
+def always_true(st: Stencil):
+    """A traced ``True`` (the lowest node's index is clipped to ``>= 0``), for :func:`materialize`."""
+    return st.base[0, 0] >= 0
+
+
+def materialize(tree, token):
+    """``tree`` itself, computed once and stored (``token`` must be a traced True).
+
+    XLA's CPU fusion treats elementwise arithmetic as cheap and re-computes it inside every
+    consumer: inside each of the 27 P2G row fusions, or per output entry of a sum over the
+    stencil, and in forward mode their tangents too (5x slower steps, or 2-3x slower
+    Jacobians). ``lax.optimization_barrier`` is expanded away before fusion on CPU. A
+    conditional is a fusion boundary: its output is materialised once.
+    """
+    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
 
 
 def grid_strides(shape: tuple[int, ...]) -> tuple[int, ...]:
@@ -250,6 +273,66 @@ def scatter_rows(num_nodes: int, index: list[Int[Array, " N"]], rows: list[Float
     for node, block in zip(index, rows):
         out = out.at[node].add(jnp.pad(block, ((0, 0), (0, cp - c))), mode="promise_in_bounds")
     return out[:, :c]
+
+
+def _stencil_moments(
+    offsets, weights: list[Float[Array, " N"]], values: list[Float[Array, "N C"]]
+) -> tuple[Float[Array, "N C"], Float[Array, "N C D"]]:
+    """``sum_o w_o v_o`` and ``M[:, c, d] = sum_o w_o o_d v_o[c]`` over the stencil."""
+    total = jnp.zeros_like(values[0])
+    moments = [jnp.zeros_like(values[0]) for _ in offsets[0]]
+    for offset, weight, vo in zip(offsets, weights, values):
+        wv = weight[:, None] * vo
+        total = total + wv
+        moments = [m + od * wv if od else m for m, od in zip(moments, offset)]
+    return total, jnp.stack(moments, axis=-1)
+
+
+def _masked(weights, incompatible):
+    return weights if incompatible is None else [jnp.where(incompatible[o], 0.0, w) for o, w in enumerate(weights)]
+
+
+@jax.custom_jvp
+def stencil_moments(
+    st: Stencil, incompatible: Bool[Array, "K N"] | None, values: list[Float[Array, "N C"]]
+) -> tuple[Float[Array, "N C"], Float[Array, "N C D"]]:
+    """G2P's sums over the stencil: ``v = sum_o w_o v_o`` ``(N, C)`` and the first moments
+    ``M[:, c, d] = sum_o w_o o_d v_o[c]`` ``(N, C, D)`` of the per-offset values ``v_o``
+    (``(N, C)`` each, in the order of :func:`stencil_offsets`); nodes marked ``incompatible``
+    ``(3^D, N)`` get weight 0.
+
+    Forward mode: the weights' tangent ``dw_o = sum_e dw_o/dfx_e dfx_e`` is regrouped as
+    ``sum_e dfx_e (sum_o dw_o/dfx_e v_o)``: the sums in brackets depend on the primal only and
+    are computed once, not per tangent direction and output entry (XLA's fused tangent
+    recomputed every weight's derivative for each of the ``k x C x D`` entries: 3x slower
+    Jacobians). The rule is linear in the tangents, so reverse mode transposes it. ``st.w``
+    must be :func:`bspline_weights` of ``st.fx`` (as :func:`compute_stencil` makes it).
+    """
+    offsets = stencil_offsets(st.dim)
+    return _stencil_moments(offsets, _masked([offset_weight(st, o) for o in offsets], incompatible), values)
+
+
+@stencil_moments.defjvp
+def _stencil_moments_jvp(primals, tangents):
+    st, incompatible, values = primals
+    dst, _, dvalues = tangents
+    offsets = stencil_offsets(st.dim)
+    weights = _masked([offset_weight(st, o) for o in offsets], incompatible)
+    out = _stencil_moments(offsets, weights, values)
+    slope = [bspline_slopes(f) for f in st.fx]  # slope[d][k]
+    by_axis = []  # d/dfx_e of (v, M), e = 0 .. D-1: primal only
+    for e in range(st.dim):
+        dweights = [
+            functools.reduce(operator.mul, [slope[d][k] if d == e else st.w[k][d] for d, k in enumerate(offset)])
+            for offset in offsets
+        ]
+        by_axis.append(_stencil_moments(offsets, _masked(dweights, incompatible), values))
+    by_axis = materialize(by_axis, always_true(st))
+    dv, dM = _stencil_moments(offsets, weights, dvalues)
+    for dfx, (P, Q) in zip(dst.fx, by_axis):
+        dv = dv + dfx[:, None] * P
+        dM = dM + dfx[:, None, None] * Q
+    return out, (dv, dM)
 
 
 def gather_rows(table: Float[Array, "G C"], index: list[Int[Array, " N"]]) -> list[Float[Array, "N C"]]:

@@ -34,11 +34,14 @@ from .state import (
     Grid,
     State,
     Stencil,
+    always_true,
     compute_stencil,
     gather_rows,
+    materialize,
     offset_weight,
     scatter_rows,
     stencil_index,
+    stencil_moments,
     stencil_offsets,
 )
 
@@ -139,7 +142,7 @@ def p2g(
     base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
     # Stored once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
-    columns, base_momentum = cpic.materialize((columns, base_momentum), st.base[0, 0] >= 0)
+    columns, base_momentum = materialize((columns, base_momentum), always_true(st))
     incompatible = None if contact is None else contact.incompatible_mask()
     rows = []
     for o, offset in enumerate(stencil_offsets(dim)):
@@ -290,20 +293,9 @@ def g2p(
     moment ``M_c`` (:func:`jaxmpm.cpic.incompatible_moments`): ``v += W_c P_c``,
     ``C += 4/dx^2 P_c M_c^T``.
     """
-    n, dim = st.num_particles, st.dim
-    offsets = stencil_offsets(dim)
     values = gather_rows(grid_v, stencil_index(grid, st))
     incompatible = None if ghost is None else ghost.contact.incompatible_mask()
-    v = jnp.zeros((n, dim), grid_v.dtype)
-    moments = [jnp.zeros((n, dim), grid_v.dtype) for _ in range(dim)]  # moments[d] = sum w v_o o_d
-    for o, (offset, vo) in enumerate(zip(offsets, values)):
-        weight = offset_weight(st, offset)
-        if incompatible is not None:
-            weight = jnp.where(incompatible[o], 0.0, weight)
-        wv = weight[:, None] * vo
-        v = v + wv
-        moments = [m + od * wv if od else m for m, od in zip(moments, offset)]
-    moments = jnp.stack(moments, axis=-1)
+    v, moments = stencil_moments(st, incompatible, values)
     fx = jnp.stack(st.fx, axis=-1)
     C = (4.0 / grid.dx) * (moments - v[:, :, None] * fx[:, None, :])
     for c in range(0 if ghost is None else len(ghost.kinds)):

@@ -49,6 +49,72 @@ def test_stencil_weights_are_a_partition_of_unity(dim):
         assert bool(jnp.all((f >= 0.5) & (f < 1.5)))
 
 
+def _plain_stencil_moments(st, incompatible, values):
+    """G2P's stencil sums written out, differentiated by JAX op by op (the reference)."""
+    v, moments = 0.0, 0.0
+    for o, offset in enumerate(stencil_offsets(st.dim)):
+        w = jnp.prod(jnp.stack([st.w[k][d] for d, k in enumerate(offset)]), axis=0)
+        w = w if incompatible is None else jnp.where(incompatible[o], 0.0, w)
+        v = v + w[:, None] * values[o]
+        moments = moments + w[:, None, None] * values[o][:, :, None] * jnp.asarray(offset, w.dtype)
+    return v, moments
+
+
+@pytest.mark.x64
+@pytest.mark.parametrize("masked", [False, True])
+def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_differences(dim, masked):
+    """:func:`jaxmpm.state.stencil_moments` regroups its tangent by hand: its value, its
+    Jacobian-vector products (batched over directions, as Jacobians are) and its transpose
+    must equal the op-by-op derivative of the plain sums, and central differences."""
+    from jaxmpm.state import stencil_moments
+
+    grid = Grid(lo=(0.0,) * dim, hi=(1.0,) * dim, dx=0.1)
+    keys = jax.random.split(jax.random.PRNGKey(3), 6)
+    n, k = 40, 3
+    x = jax.random.uniform(keys[0], (n, dim), jnp.float64, 0.1, 0.9)
+    values = jax.random.normal(keys[1], (3**dim, n, dim), jnp.float64)
+    incompatible = jax.random.bernoulli(keys[2], 0.3, (3**dim, n)) if masked else None
+
+    def f(impl, x, values):
+        return impl(compute_stencil(grid, x), incompatible, list(values))
+
+    mine, plain = (lambda x, v: f(stencil_moments, x, v)), (lambda x, v: f(_plain_stencil_moments, x, v))
+    for a, b in zip(mine(x, values), plain(x, values)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
+    dx = jax.random.normal(keys[3], (k, n, dim), jnp.float64) * 1e-2
+    dv = jax.random.normal(keys[4], (k, *values.shape), jnp.float64)
+    tangents = [jax.vmap(lambda a, b: jax.jvp(fn, (x, values), (a, b))[1])(dx, dv) for fn in (mine, plain)]
+    for a, b in zip(*tangents):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    # central differences along the first direction (stencils do not change: |h dx| << fx's margin)
+    h = 1e-6
+    up, down = mine(x + h * dx[0], values + h * dv[0]), mine(x - h * dx[0], values - h * dv[0])
+    for t, u, d in zip(tangents[0], up, down):
+        np.testing.assert_allclose(t[0], (u - d) / (2 * h), rtol=1e-6, atol=1e-8)
+    # reverse mode transposes the rule
+    cot = jax.random.normal(keys[5], (n, dim), jnp.float64), jax.random.normal(keys[5], (n, dim, dim), jnp.float64)
+    grads = [jax.vjp(fn, x, values)[1](cot) for fn in (mine, plain)]
+    for a, b in zip(*grads):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.x64
+def test_small_matmul_rule_matches_plain_autodiff(dim):
+    """:func:`jaxmpm.constitutive.base.matmul` moves tangents to the right of its products;
+    forward (batched over directions) and reverse mode equal ``jnp.matmul``'s."""
+    from jaxmpm.constitutive.base import matmul
+
+    keys = jax.random.split(jax.random.PRNGKey(4), 5)
+    a, b = (jax.random.normal(key, (7, dim, dim), jnp.float64) for key in keys[:2])
+    da, db = (jax.random.normal(key, (4, 7, dim, dim), jnp.float64) for key in keys[2:4])
+    np.testing.assert_allclose(matmul(a, b), jnp.matmul(a, b), rtol=1e-14)
+    mine, plain = (jax.vmap(lambda s, t: jax.jvp(fn, (a, b), (s, t))[1])(da, db) for fn in (matmul, jnp.matmul))
+    np.testing.assert_allclose(mine, plain, rtol=1e-13, atol=1e-14)
+    cot = jax.random.normal(keys[4], (7, dim, dim), jnp.float64)
+    for m, p in zip(jax.vjp(matmul, a, b)[1](cot), jax.vjp(jnp.matmul, a, b)[1](cot)):
+        np.testing.assert_allclose(m, p, rtol=1e-13, atol=1e-14)
+
+
 @pytest.mark.x64
 @pytest.mark.parametrize("model_name", ["elastic", "newtonian"])
 def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
