@@ -292,6 +292,16 @@ def _masked(weights, incompatible):
     return weights if incompatible is None else [jnp.where(incompatible[o], 0.0, w) for o, w in enumerate(weights)]
 
 
+def _weight_partials(st: Stencil, offsets, incompatible):
+    """``d w_o / d fx_e`` for every axis ``e`` and offset ``o``: ``D x 3^D x (N,)``."""
+    slope = [bspline_slopes(f) for f in st.fx]  # slope[d][k]
+    return [
+        _masked([functools.reduce(operator.mul, [slope[d][k] if d == e else st.w[k][d] for d, k in enumerate(offset)])
+                 for offset in offsets], incompatible)
+        for e in range(st.dim)
+    ]
+
+
 @jax.custom_jvp
 def stencil_moments(
     st: Stencil, incompatible: Bool[Array, "K N"] | None, values: list[Float[Array, "N C"]]
@@ -319,14 +329,8 @@ def _stencil_moments_jvp(primals, tangents):
     offsets = stencil_offsets(st.dim)
     weights = _masked([offset_weight(st, o) for o in offsets], incompatible)
     out = _stencil_moments(offsets, weights, values)
-    slope = [bspline_slopes(f) for f in st.fx]  # slope[d][k]
-    by_axis = []  # d/dfx_e of (v, M), e = 0 .. D-1: primal only
-    for e in range(st.dim):
-        dweights = [
-            functools.reduce(operator.mul, [slope[d][k] if d == e else st.w[k][d] for d, k in enumerate(offset)])
-            for offset in offsets
-        ]
-        by_axis.append(_stencil_moments(offsets, _masked(dweights, incompatible), values))
+    # d/dfx_e of (v, M), e = 0 .. D-1: primal only
+    by_axis = [_stencil_moments(offsets, p, values) for p in _weight_partials(st, offsets, incompatible)]
     by_axis = materialize(by_axis, always_true(st))
     dv, dM = _stencil_moments(offsets, weights, dvalues)
     for dfx, (P, Q) in zip(dst.fx, by_axis):
