@@ -51,14 +51,22 @@ def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Arra
     4-6x slower on ``(N, k D, D) @ (N, D, D)`` than on ``(N, D, D) @ (N, D, k D)``
     (docs/benchmarks.md, session 24). The rule is linear in the tangents, so reverse mode
     transposes it.
+
+    Always at full precision (``Precision.HIGHEST``, as the step's other products): JAX may
+    trace the rule after :func:`jaxmpm.precision.full_precision`'s context has closed (under
+    ``jax.checkpoint`` in reverse mode).
     """
-    return jnp.matmul(a, b)
+    return _product(a, b)
+
+
+def _product(a, b):
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
 @matmul.defjvp
 def _matmul_jvp(primals, tangents):
     (a, b), (da, db) = primals, tangents
-    return jnp.matmul(a, b), _swap(jnp.matmul(_swap(b), _swap(da))) + jnp.matmul(a, db)
+    return _product(a, b), _swap(_product(_swap(b), _swap(da))) + _product(a, db)
 
 
 def lame_from_young(E, nu):
