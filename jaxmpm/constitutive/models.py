@@ -53,14 +53,14 @@ def _hencky(F):
 
 
 def _from_hencky(U, eps, V):
-    return jnp.einsum("nij,nj,nkj->nik", U, jnp.exp(eps), V)
+    return matmul(U * jnp.exp(eps)[:, None, :], jnp.swapaxes(V, -1, -2))
 
 
 def _principal_kirchhoff(U, eps, mu, lam):
     """StVK in Hencky strain from the left singular vectors and principal Hencky strains:
     ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
     diag = 2.0 * mu * eps + lam * jnp.sum(eps, axis=-1, keepdims=True)
-    return jnp.einsum("nij,nj,nkj->nik", U, diag, U)
+    return matmul(U * diag[:, None, :], jnp.swapaxes(U, -1, -2))
 
 
 def _deviatoric(eps):
@@ -167,7 +167,7 @@ class Elastic(Material):
         dim = F.shape[-1]
         eye = jnp.eye(dim, dtype=F.dtype)
         log_J = jnp.log(det(F))  # NaN when inverted: reported by the health checks
-        FFt = jnp.einsum("nij,nkj->nik", F, F)
+        FFt = matmul(F, jnp.swapaxes(F, -1, -2))
         return mu * (FFt - eye) + lam * log_J[:, None, None] * eye
 
 
