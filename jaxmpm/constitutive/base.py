@@ -37,10 +37,6 @@ def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:
     )
 
 
-def _swap(a):
-    return jnp.swapaxes(a, -1, -2)
-
-
 @jax.custom_jvp
 def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Array, "... I K"]:
     """``a @ b`` for batches of small matrices, with a forward-mode rule that keeps the tangent
@@ -66,7 +62,7 @@ def _product(a, b):
 @matmul.defjvp
 def _matmul_jvp(primals, tangents):
     (a, b), (da, db) = primals, tangents
-    return _product(a, b), _swap(_product(_swap(b), _swap(da))) + _product(a, db)
+    return _product(a, b), _product(b.mT, da.mT).mT + _product(a, db)
 
 
 def lame_from_young(E, nu):

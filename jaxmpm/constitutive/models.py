@@ -53,14 +53,14 @@ def _hencky(F):
 
 
 def _from_hencky(U, eps, V):
-    return matmul(U * jnp.exp(eps)[:, None, :], jnp.swapaxes(V, -1, -2))
+    return matmul(U * jnp.exp(eps)[:, None, :], V.mT)
 
 
 def _principal_kirchhoff(U, eps, mu, lam):
     """StVK in Hencky strain from the left singular vectors and principal Hencky strains:
     ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
     diag = 2.0 * mu * eps + lam * jnp.sum(eps, axis=-1, keepdims=True)
-    return matmul(U * diag[:, None, :], jnp.swapaxes(U, -1, -2))
+    return matmul(U * diag[:, None, :], U.mT)
 
 
 def _deviatoric(eps):
@@ -167,7 +167,7 @@ class Elastic(Material):
         dim = F.shape[-1]
         eye = jnp.eye(dim, dtype=F.dtype)
         log_J = jnp.log(det(F))  # NaN when inverted: reported by the health checks
-        FFt = matmul(F, jnp.swapaxes(F, -1, -2))
+        FFt = matmul(F, F.mT)
         return mu * (FFt - eye) + lam * log_J[:, None, None] * eye
 
 
@@ -188,10 +188,10 @@ class Corotated(Material):
     def kirchhoff(self, F, C, aux, params):
         mu, lam = lame_from_young(params["E"], params["nu"])
         U, _, V = svd(F)
-        R = matmul(U, jnp.swapaxes(V, -1, -2))
+        R = matmul(U, V.mT)
         J = det(F)[:, None, None]
         eye = jnp.eye(F.shape[-1], dtype=F.dtype)
-        return 2.0 * mu * matmul(F - R, jnp.swapaxes(F, -1, -2)) + lam * (J - 1.0) * J * eye
+        return 2.0 * mu * matmul(F - R, F.mT) + lam * (J - 1.0) * J * eye
 
 
 class Newtonian(Material):

@@ -335,7 +335,7 @@ def _svd_jvp(primals, tangents):
     Ut = jnp.swapaxes(U, -1, -2)
     # U^T dF V, written (V^T (U^T dF)^T)^T so that the tangent is the right operand of both
     # products (see constitutive.base.matmul: 4-6x faster under vmap over tangent directions).
-    dP = jnp.swapaxes(jnp.matmul(jnp.swapaxes(V, -1, -2), jnp.swapaxes(jnp.matmul(Ut, dF), -1, -2)), -1, -2)
+    dP = jnp.matmul(V.mT, jnp.matmul(Ut, dF).mT).mT
     dPt = jnp.swapaxes(dP, -1, -2)
     sym = (dP + dPt) * k_sym
     skew = (dP - dPt) * k_skew
