@@ -47,7 +47,8 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .state import Grid, Stencil, flat_index, materialize, node_indices, offset_weight, stencil_offsets, stencil_terms
+from .fusion import materialize
+from .state import Grid, Stencil, flat_index, node_indices, offset_weight, stencil_offsets, stencil_terms
 
 
 class CollisionField(eqx.Module):

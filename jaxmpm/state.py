@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .fusion import always_true, compute_once, materialize
+
 #: Number of padding cells added around the scene's domain on every side, so that the
 #: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
 #: outside it) stays inside the grid.
@@ -184,23 +186,6 @@ def bspline_slopes(f: Float[Array, " N"]) -> tuple[Float[Array, " N"], ...]:
     return f - 1.5, 2.0 * (1.0 - f), f - 0.5
 
 
-def always_true(st: Stencil):
-    """A traced ``True`` (the lowest node's index is clipped to ``>= 0``), for :func:`materialize`."""
-    return st.base[0, 0] >= 0
-
-
-def materialize(tree, token):
-    """``tree`` itself, computed once and stored (``token`` must be a traced True).
-
-    XLA's CPU fusion treats elementwise arithmetic as cheap and re-computes it inside every
-    consumer: inside each of the 27 P2G row fusions, or per output entry of a sum over the
-    stencil, and in forward mode their tangents too (5x slower steps, or 2-3x slower
-    Jacobians). ``lax.optimization_barrier`` is expanded away before fusion on CPU. A
-    conditional is a fusion boundary: its output is materialised once.
-    """
-    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
-
-
 def grid_strides(shape: tuple[int, ...]) -> tuple[int, ...]:
     strides, acc = [], 1
     for n in reversed(shape):
@@ -331,18 +316,30 @@ def _stencil_moments_jvp(primals, tangents):
     out = _stencil_moments(offsets, weights, values)
     # d/dfx_e of (v, M), e = 0 .. D-1: primal only
     by_axis = [_stencil_moments(offsets, p, values) for p in _weight_partials(st, offsets, incompatible)]
-    by_axis = materialize(by_axis, always_true(st))
+    by_axis = materialize(by_axis, always_true(st.base))
     dv, dM = _stencil_moments(offsets, weights, dvalues)
     for dfx, (P, Q) in zip(dst.fx, by_axis):
         dv = dv + dfx[:, None] * P
         dM = dM + dfx[:, None, None] * Q
-    return out, (dv, dM)
+    return out, materialize((dv, dM), always_true(st.base))
 
 
 def gather_rows(table: Float[Array, "G C"], index: list[Int[Array, " N"]]) -> list[Float[Array, "N C"]]:
     """``table[index[o]]`` for every offset ``o`` in one gather (of the concatenated indices),
     split into per-offset ``(N, C)`` blocks."""
     c = table.shape[-1]
-    cp = _padded_width(c)
-    rows = jnp.pad(table, ((0, 0), (0, cp - c))).at[jnp.concatenate(index)].get(mode="promise_in_bounds")
-    return [block[:, :c] for block in jnp.split(rows, len(index))]
+    return [block[:, :c] for block in jnp.split(_gather(table, jnp.concatenate(index)), len(index))]
+
+
+@jax.custom_jvp
+def _gather(table: Float[Array, "G C"], index: Int[Array, " M"]) -> Float[Array, "M P"]:
+    """``table[index]`` with rows padded to ``P``, a power of two."""
+    c = table.shape[-1]
+    return jnp.pad(table, ((0, 0), (0, _padded_width(c) - c))).at[index].get(mode="promise_in_bounds")
+
+
+@_gather.defjvp
+def _gather_jvp(primals, tangents):
+    table, index = primals
+    dtable, _ = tangents
+    return _gather(table, index), compute_once(_gather, dtable, index, token=always_true(index))

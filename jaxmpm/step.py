@@ -28,16 +28,15 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .constitutive.base import matmul
+from .fusion import always_true, materialize
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
     Grid,
     State,
     Stencil,
-    always_true,
     compute_stencil,
     gather_rows,
-    materialize,
     offset_weight,
     scatter_rows,
     stencil_index,
@@ -142,7 +141,7 @@ def p2g(
     base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
     # Stored once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
-    columns, base_momentum = materialize((columns, base_momentum), always_true(st))
+    columns, base_momentum = materialize((columns, base_momentum), always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
     rows = []
     for o, offset in enumerate(stencil_offsets(dim)):

@@ -99,20 +99,50 @@ def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_diff
 
 
 @pytest.mark.x64
-def test_small_matmul_rule_matches_plain_autodiff(dim):
-    """:func:`jaxmpm.constitutive.base.matmul` moves tangents to the right of its products;
-    forward (batched over directions) and reverse mode equal ``jnp.matmul``'s."""
+def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
+    """:func:`jaxmpm.constitutive.base.matmul` (elementwise products): its value, its
+    Jacobian-vector products batched over directions and its vector-Jacobian products equal
+    ``jnp.matmul``'s."""
     from jaxmpm.constitutive.base import matmul
 
     keys = jax.random.split(jax.random.PRNGKey(4), 5)
     a, b = (jax.random.normal(key, (7, dim, dim), jnp.float64) for key in keys[:2])
     da, db = (jax.random.normal(key, (4, 7, dim, dim), jnp.float64) for key in keys[2:4])
-    np.testing.assert_allclose(matmul(a, b), jnp.matmul(a, b), rtol=1e-14)
+    np.testing.assert_allclose(matmul(a, b), jnp.matmul(a, b), rtol=1e-13, atol=1e-14)
     mine, plain = (jax.vmap(lambda s, t: jax.jvp(fn, (a, b), (s, t))[1])(da, db) for fn in (matmul, jnp.matmul))
     np.testing.assert_allclose(mine, plain, rtol=1e-13, atol=1e-14)
     cot = jax.random.normal(keys[4], (7, dim, dim), jnp.float64)
     for m, p in zip(jax.vjp(matmul, a, b)[1](cot), jax.vjp(jnp.matmul, a, b)[1](cot)):
         np.testing.assert_allclose(m, p, rtol=1e-13, atol=1e-14)
+
+
+@pytest.mark.x64
+def test_gather_rows_rule_matches_plain_indexing(dim):
+    """:func:`jaxmpm.state.gather_rows` gathers tangents in a conditional of its own (a fusion
+    boundary): its value, batched Jacobian-vector products and transpose equal plain
+    indexing's, with a table narrower than its padded rows."""
+    from jaxmpm.state import gather_rows, stencil_index
+
+    grid = Grid(lo=(0.0,) * dim, hi=(1.0,) * dim, dx=0.1)
+    keys = jax.random.split(jax.random.PRNGKey(5), 4)
+    x = jax.random.uniform(keys[0], (30, dim), jnp.float64, 0.1, 0.9)
+    index = stencil_index(grid, compute_stencil(grid, x))
+    table = jax.random.normal(keys[1], (grid.num_nodes, 3), jnp.float64)
+
+    def plain(t):
+        return [t[i] for i in index]
+
+    def mine(t):
+        return gather_rows(t, index)
+
+    for a, b in zip(mine(table), plain(table)):
+        np.testing.assert_array_equal(a, b)
+    dt = jax.random.normal(keys[2], (4, *table.shape), jnp.float64)
+    ours, theirs = (jax.vmap(lambda d: jax.jvp(fn, (table,), (d,))[1])(dt) for fn in (mine, plain))
+    for a, b in zip(ours, theirs):
+        np.testing.assert_array_equal(a, b)
+    cot = list(jax.random.normal(keys[3], (len(index), 30, 3), jnp.float64))
+    np.testing.assert_allclose(jax.vjp(mine, table)[1](cot)[0], jax.vjp(plain, table)[1](cot)[0], rtol=1e-14, atol=1e-14)
 
 
 @pytest.mark.x64

@@ -6,7 +6,6 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -37,32 +36,17 @@ def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:
     )
 
 
-@jax.custom_jvp
 def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Array, "... I K"]:
-    """``a @ b`` for batches of small matrices, with a forward-mode rule that keeps the tangent
-    on the right of both products: ``d(a b) = (b^T da^T)^T + a db``.
+    """``a @ b`` for batches of small matrices, written as ``J`` broadcast products summed
+    elementwise (exact float32 or float64 arithmetic at any ``jax_default_matmul_precision``).
 
-    Under ``jax.vmap`` over tangent directions (a Levenberg–Marquardt Jacobian), JAX folds the
-    directions into the free dimension of the operand that carries them; XLA's CPU dot is
-    4-6x slower on ``(N, k D, D) @ (N, D, D)`` than on ``(N, D, D) @ (N, D, k D)``
-    (docs/benchmarks.md, session 24). The rule is linear in the tangents, so reverse mode
-    transposes it.
-
-    Always at full precision (``Precision.HIGHEST``, as the step's other products): JAX may
-    trace the rule after :func:`jaxmpm.precision.full_precision`'s context has closed (under
-    ``jax.checkpoint`` in reverse mode).
+    On CPU XLA fuses and vectorises these over the batch, whereas its dot op on 3x3 blocks
+    pays a per-block cost: the corotated stress 2x faster, and 3-7x faster under ``jax.vmap``
+    over tangent directions (docs/benchmarks.md, session 25). A caller whose operands are deep
+    elementwise expressions stores them first (:func:`jaxmpm.fusion.materialize`) so that
+    the fused products do not re-compute them per output entry.
     """
-    return _product(a, b)
-
-
-def _product(a, b):
-    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
-
-
-@matmul.defjvp
-def _matmul_jvp(primals, tangents):
-    (a, b), (da, db) = primals, tangents
-    return _product(a, b), _product(b.mT, da.mT).mT + _product(a, db)
+    return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
 
 
 def lame_from_young(E, nu):

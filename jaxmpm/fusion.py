@@ -1,0 +1,39 @@
+"""Fusion boundaries for XLA's CPU compiler: values computed once and stored.
+
+XLA's CPU fusion treats elementwise arithmetic as cheap and re-computes it inside every
+consumer: inside each of P2G's 3^D row fusions, per output entry of a sum over the stencil,
+and in forward mode their tangents too (5x slower steps, or 2-3x slower Jacobians, measured
+in docs/benchmarks.md). ``lax.optimization_barrier`` is expanded away before fusion on CPU.
+A conditional is a fusion boundary: its operands and its output are materialised once.
+Both helpers are linear in their array inputs, so JAX differentiates, batches and transposes
+them like the values they return.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool
+
+
+def always_true(x: Array) -> Bool[Array, ""]:
+    """A traced ``True`` that XLA cannot fold away (a count of nonzeros is ``>= 0``); ``x`` is
+    any array of the computation."""
+    return jnp.count_nonzero(jnp.ravel(x)[:1]) >= 0
+
+
+def materialize(tree, token: Bool[Array, ""]):
+    """``tree`` itself, stored once (one copy). ``token``: :func:`always_true` of a value that
+    is neither differentiated nor batched (a stencil's node indices, say): under ``jax.vmap``
+    a batched predicate turns the conditional into a select, which fuses."""
+    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
+
+
+def compute_once(fn, *args, token: Bool[Array, ""]):
+    """``fn(*args)``, computed inside a conditional's branch: its inputs are materialised,
+    ``fn``'s body cannot be re-computed by its consumers, and its output is written once
+    (no copy, unlike :func:`materialize`). ``token`` as for :func:`materialize`."""
+    shapes = jax.eval_shape(fn, *args)
+    return jax.lax.cond(
+        token, lambda a: fn(*a), lambda a: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), args
+    )
