@@ -83,7 +83,7 @@ def profile(fn, args, repeats: int) -> tuple[dict, float, float]:
         if e.get("ph") == "X" and op is not None:
             per_op[op] += e["dur"] / 1e3 / repeats
     # a conditional's event spans the ops of its branch, which have their own events
-    containers = set(re.findall(r"^\s*(?:ROOT\s+)?%?([\w.\-]+) = [^=]*? conditional\(", compiled.as_text(), re.M))
+    containers = set(re.findall(r"^\s*(?:ROOT\s+)?%?([\w.\-]+) = .*? conditional\(", compiled.as_text(), re.M))
     table = {op: {"ms": ms, "op_name": names.get(op, "")} for op, ms in per_op.items() if op not in containers}
     return table, 1e3 * wall / repeats, 1e3 * cpu / repeats
 

@@ -28,7 +28,7 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .constitutive.base import matmul
-from .fusion import always_true, materialize
+from .fusion import always_true, compute_once
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
@@ -135,13 +135,16 @@ def p2g(
         node masses ``(G,)`` and momenta ``(G, D)`` (flat, C order).
     """
     dim = state.dim
-    affine = affine_momentum(grid, state, tau, dt)
-    # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
-    columns = [grid.dx * affine[:, :, d] for d in range(dim)]
-    base_momentum = state.mass[:, None] * state.v - grid.dx * jnp.einsum("nij,nj->ni", affine, jnp.stack(st.fx, axis=-1))
-    # Stored once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
+
+    def momentum_terms(state, tau, fx):
+        # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
+        affine = affine_momentum(grid, state, tau, dt)
+        columns = [grid.dx * affine[:, :, d] for d in range(dim)]
+        return columns, state.mass[:, None] * state.v - grid.dx * sum(affine[:, :, d] * fx[d][:, None] for d in range(dim))
+
+    # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
-    columns, base_momentum = materialize((columns, base_momentum), always_true(st.base))
+    columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
     rows = []
     for o, offset in enumerate(stencil_offsets(dim)):
