@@ -100,9 +100,9 @@ def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_diff
 
 @pytest.mark.x64
 def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
-    """:func:`jaxmpm.constitutive.base.matmul` (elementwise products): its value, its
-    Jacobian-vector products batched over directions and its vector-Jacobian products equal
-    ``jnp.matmul``'s."""
+    """:func:`jaxmpm.constitutive.base.matmul` (elementwise value, dot-based rule that moves
+    tangents to the right of its products): its value, its Jacobian-vector products batched
+    over directions and its vector-Jacobian products equal ``jnp.matmul``'s."""
     from jaxmpm.constitutive.base import matmul
 
     keys = jax.random.split(jax.random.PRNGKey(4), 5)

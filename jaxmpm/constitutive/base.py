@@ -6,6 +6,7 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -36,17 +37,36 @@ def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:
     )
 
 
+@jax.custom_jvp
 def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Array, "... I K"]:
-    """``a @ b`` for batches of small matrices, written as ``J`` broadcast products summed
-    elementwise (exact float32 or float64 arithmetic at any ``jax_default_matmul_precision``).
+    """``a @ b`` for batches of small matrices: the value as ``J`` broadcast products summed
+    elementwise, the forward-mode rule as dot ops that keep the tangent on the right of both
+    products, ``d(a b) = (b^T da^T)^T + a db``.
 
-    On CPU XLA fuses and vectorises these over the batch, whereas its dot op on 3x3 blocks
-    pays a per-block cost: the corotated stress 2x faster, and 3-7x faster under ``jax.vmap``
-    over tangent directions (docs/benchmarks.md, session 25). A caller whose operands are deep
-    elementwise expressions stores them first (:func:`jaxmpm.fusion.materialize`) so that
-    the fused products do not re-compute them per output entry.
+    - Value: XLA's CPU compiler fuses and vectorises elementwise products over the batch; its
+      dot op on 3x3 blocks pays a per-block cost (the corotated stress ~1.5x faster; exact
+      float32 or float64 arithmetic at any ``jax_default_matmul_precision``).
+    - Rule: dots, because reverse mode transposes the rule, and the transpose of elementwise
+      products is a sum over a 3-wide axis that XLA runs far slower than a dot: elementwise
+      rules made the corotated material's forward mode 2-3x faster, but its gradient 3x and
+      a 200-step rollout's gradient 1.5x slower (docs/benchmarks.md, session 25). Under ``jax.vmap`` over tangent directions
+      JAX folds the directions into the free dimension of the operand that carries them, and
+      XLA's CPU dot is 4-6x slower on ``(N, k D, D) @ (N, D, D)`` than on
+      ``(N, D, D) @ (N, D, k D)`` (session 24). At full precision (``Precision.HIGHEST``): JAX
+      may trace the rule after :func:`jaxmpm.precision.full_precision`'s context has closed
+      (under ``jax.checkpoint`` in reverse mode).
     """
     return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
+
+
+def _dot(a, b):
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
+@matmul.defjvp
+def _matmul_jvp(primals, tangents):
+    (a, b), (da, db) = primals, tangents
+    return matmul(a, b), _dot(b.mT, da.mT).mT + _dot(a, db)
 
 
 def lame_from_young(E, nu):
