@@ -5,8 +5,8 @@ consumer: inside each of P2G's 3^D row fusions, per output entry of a sum over t
 and in forward mode their tangents too (5x slower steps, or 2-3x slower Jacobians, measured
 in docs/benchmarks.md). ``lax.optimization_barrier`` is expanded away before fusion on CPU.
 A conditional is a fusion boundary: its operands and its output are materialised once.
-Both helpers are linear in their array inputs, so JAX differentiates, batches and transposes
-them like the values they return.
+JAX differentiates, batches and transposes both helpers as conditionals: ``materialize`` is
+the identity, and ``compute_once`` is linear wherever its function is (a tangent gather).
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ def always_true(x: Array) -> Bool[Array, ""]:
 
 
 def materialize(tree, token: Bool[Array, ""]):
-    """``tree`` itself, stored once (one copy). ``token``: :func:`always_true` of a value that
-    is neither differentiated nor batched (a stencil's node indices, say): under ``jax.vmap``
-    a batched predicate turns the conditional into a select, which fuses."""
+    """``tree`` itself, stored once (one copy). ``token``: a traced True computed from primal
+    values only, never from a tangent, and not batched (:func:`always_true` of a stencil's node
+    indices, say): under ``jax.vmap`` a batched predicate turns the conditional into a select,
+    which fuses (and computes both branches)."""
     return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
 
 

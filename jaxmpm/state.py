@@ -321,12 +321,18 @@ def _stencil_moments_jvp(primals, tangents):
     for dfx, (P, Q) in zip(dst.fx, by_axis):
         dv = dv + dfx[:, None] * P
         dM = dM + dfx[:, None, None] * Q
+    # stored: G2P's affine-matrix tangent reads dv for each of its D x D entries
     return out, materialize((dv, dM), always_true(st.base))
 
 
 def gather_rows(table: Float[Array, "G C"], index: list[Int[Array, " N"]]) -> list[Float[Array, "N C"]]:
     """``table[index[o]]`` for every offset ``o`` in one gather (of the concatenated indices),
-    split into per-offset ``(N, C)`` blocks."""
+    split into per-offset ``(N, C)`` blocks.
+
+    Forward mode gathers the tangent table inside a conditional (:func:`jaxmpm.fusion.compute_once`):
+    under ``jax.vmap`` over k tangent directions XLA otherwise lays the gathered rows out
+    particle-major, ``(3^D N, k, C)``, and the stencil sums that read them run 3x slower
+    (docs/benchmarks.md, session 25). The rule is the plain gather, transposed as before."""
     c = table.shape[-1]
     return [block[:, :c] for block in jnp.split(_gather(table, jnp.concatenate(index)), len(index))]
 

@@ -140,7 +140,8 @@ def p2g(
         # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
         affine = affine_momentum(grid, state, tau, dt)
         columns = [grid.dx * affine[:, :, d] for d in range(dim)]
-        return columns, state.mass[:, None] * state.v - grid.dx * sum(affine[:, :, d] * fx[d][:, None] for d in range(dim))
+        affine_fx = sum(affine[:, :, d] * fx[d][:, None] for d in range(dim))
+        return columns, state.mass[:, None] * state.v - grid.dx * affine_fx
 
     # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.

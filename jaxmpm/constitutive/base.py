@@ -49,12 +49,13 @@ def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Arra
     - Rule: dots, because reverse mode transposes the rule, and the transpose of elementwise
       products is a sum over a 3-wide axis that XLA runs far slower than a dot: elementwise
       rules made the corotated material's forward mode 2-3x faster, but its gradient 3x and
-      a 200-step rollout's gradient 1.5x slower (docs/benchmarks.md, session 25). Under ``jax.vmap`` over tangent directions
-      JAX folds the directions into the free dimension of the operand that carries them, and
-      XLA's CPU dot is 4-6x slower on ``(N, k D, D) @ (N, D, D)`` than on
-      ``(N, D, D) @ (N, D, k D)`` (session 24). At full precision (``Precision.HIGHEST``): JAX
-      may trace the rule after :func:`jaxmpm.precision.full_precision`'s context has closed
-      (under ``jax.checkpoint`` in reverse mode).
+      a 200-step rollout's gradient 1.5x slower (docs/benchmarks.md, session 25).
+    - Under ``jax.vmap`` over tangent directions JAX folds the directions into the free
+      dimension of the operand that carries them, and XLA's CPU dot is 4-6x slower on
+      ``(N, k D, D) @ (N, D, D)`` than on ``(N, D, D) @ (N, D, k D)`` (session 24).
+    - The rule's dots are at full precision (``Precision.HIGHEST``): JAX may trace the rule
+      after :func:`jaxmpm.precision.full_precision`'s context has closed (under
+      ``jax.checkpoint`` in reverse mode).
     """
     return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
 
