@@ -27,7 +27,7 @@ def materialize(tree, token: Bool[Array, ""]):
     values only, never from a tangent, and not batched (:func:`always_true` of a stencil's node
     indices, say): under ``jax.vmap`` a batched predicate turns the conditional into a select,
     which fuses (and computes both branches)."""
-    return jax.lax.cond(token, lambda t: t, lambda t: jax.tree_util.tree_map(jnp.zeros_like, t), tree)
+    return compute_once(lambda t: t, tree, token=token)
 
 
 def compute_once(fn, *args, token: Bool[Array, ""]):
