@@ -11,6 +11,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Bool, Float, Int
 
 from .fusion import always_true, compute_once, materialize
@@ -235,12 +237,24 @@ def stencil_terms(grid: Grid, st: Stencil):
 # ~10x the forward (docs/benchmarks.md). P2G scatters per offset into one buffer updated in
 # place (the transpose, a gather per offset, is cheap). Rows are padded to a power-of-two
 # width: XLA's CPU scatter-add is 4-5x slower on 3-wide rows than on 4-wide ones (measured).
+#
+# P2G's scatter is a JAX primitive of its own with three rules: its tangent is the same
+# scatter of the tangent rows (it is linear in them), its transpose is one gather per offset,
+# and under ``jax.vmap`` a batch of B is ONE scatter per offset of the ``B N`` stacked rows
+# into a ``(B G, C)`` buffer, the indices shifted by ``b G``. JAX's own batching of a scatter
+# makes the batch a window dimension, which XLA's CPU backend lays out particle-major,
+# ``(N, B, C)``: forward-mode Jacobians (``vmap`` of ``jvp`` over k tangent directions) then
+# transposed every tangent row on its way to the grid (docs/benchmarks.md, session 26). G2P's
+# gather reaches the same layout with a conditional (:func:`gather_rows`); a primitive with
+# the same batching rule was measured slower there (XLA then fused the grid update into it).
 
 
 def stencil_index(grid: Grid, st: Stencil) -> list[Int[Array, " N"]]:
     """Flat node index of each stencil node of every particle, one ``(N,)`` array per offset
     (the order of :func:`stencil_offsets`): the lowest node's index plus a constant."""
-    flat = flat_index(grid.shape, st.base)
+    # stored once: each consumer (the scatters' and gathers' index operands) would otherwise
+    # re-derive the node index from the positions per entry (in forward mode, per tangent)
+    flat = compute_once(functools.partial(flat_index, grid.shape), st.base, token=always_true(st.base))
     return [flat + int(np.dot(offset, grid_strides(grid.shape))) for offset in stencil_offsets(st.dim)]
 
 
@@ -248,16 +262,103 @@ def _padded_width(c: int) -> int:
     return 1 << max(c - 1, 0).bit_length()
 
 
-def scatter_rows(num_nodes: int, index: list[Int[Array, " N"]], rows: list[Float[Array, "N C"]]) -> Float[Array, "G C"]:
-    """``sum_o zeros(G, C).at[index[o]].add(rows[o])``: one grid buffer updated in place by
-    one scatter per stencil offset (indices in bounds, see :func:`compute_stencil`). Its
-    transpose is one gather per offset, which is cheap."""
+def _shift_batch(index: Int[Array, "B M"], num_nodes: int) -> Int[Array, " BM"]:
+    """Indices into the ``b``-th of B stacked ``num_nodes``-row tables, flattened."""
+    return (index + num_nodes * jnp.arange(index.shape[0], dtype=index.dtype)[:, None]).reshape(-1)
+
+
+def _batch_at_front(x: Array, dim: int | None, size: int) -> Array:
+    return jnp.broadcast_to(x, (size,) + x.shape) if dim is None else batching.bdim_at_front(x, dim, size)
+
+
+def _fits_int32(size: int, num_nodes: int) -> bool:
+    return size * num_nodes < np.iinfo(np.int32).max
+
+
+# a block of W consecutive rows per index
+_BLOCK_SCATTER = jax.lax.ScatterDimensionNumbers(
+    update_window_dims=(1, 2), inserted_window_dims=(), scatter_dims_to_operand_dims=(0,)
+)
+_BLOCK_GATHER = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2), collapsed_slice_dims=(), start_index_map=(0,))
+# lax's scatter and gather, not ``.at[]``: in-bounds indices need no wrap-around of negatives
+_IN_BOUNDS = jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS
+
+
+def scatter_stencil(grid: Grid, st: Stencil, rows: list[Float[Array, "N C"]]) -> Float[Array, "G C"]:
+    """``sum_o zeros(G, C).at[node_o].add(rows[o])`` over the stencil's 3^D nodes (``rows`` in
+    the order of :func:`stencil_offsets`). The 3 nodes of a run along the last axis are
+    consecutive grid rows: each run is one ``(N, 3, C)`` block of one scatter (3^(D-1)
+    scatters, one index array each)."""
+    blocks = [jnp.stack(rows[i:i + 3], axis=1) for i in range(0, len(rows), 3)]
+    return scatter_blocks(grid.num_nodes, stencil_index(grid, st)[::3], blocks)
+
+
+def scatter_blocks(
+    num_nodes: int, index: list[Int[Array, " N"]], blocks: list[Float[Array, "N W C"]]
+) -> Float[Array, "G C"]:
+    """``sum_o sum_w zeros(G, C).at[index[o] + w].add(blocks[o][:, w])``: one grid buffer
+    updated in place by one scatter per block (indices in bounds, see :func:`compute_stencil`)."""
+    return _scatter_rows_p.bind(*index, *blocks, num_nodes=num_nodes)
+
+
+def _scatter_rows_impl(*args: Array, num_nodes: int) -> Float[Array, "G C"]:
+    count = len(args) // 2
+    index, rows = args[:count], args[count:]
     c = rows[0].shape[-1]
     cp = _padded_width(c)
     out = jnp.zeros((num_nodes, cp), rows[0].dtype)
     for node, block in zip(index, rows):
-        out = out.at[node].add(jnp.pad(block, ((0, 0), (0, cp - c))), mode="promise_in_bounds")
+        out = jax.lax.scatter_add(out, node[:, None], jnp.pad(block, ((0, 0), (0, 0), (0, cp - c))), _BLOCK_SCATTER,
+                                  mode=_IN_BOUNDS)
     return out[:, :c]
+
+
+def _scatter_rows_jvp(primals, tangents, *, num_nodes: int):
+    count = len(primals) // 2
+    out = _scatter_rows_p.bind(*primals, num_nodes=num_nodes)
+    drows = tangents[count:]
+    if all(type(t) is ad.Zero for t in drows):
+        return out, ad.Zero.from_primal_value(out)
+    drows = [ad.instantiate_zeros(t) for t in drows]
+    return out, _scatter_rows_p.bind(*primals[:count], *drows, num_nodes=num_nodes)
+
+
+def _scatter_rows_transpose(cotangent, *args, num_nodes: int):
+    count = len(args) // 2
+    index, rows = args[:count], args[count:]
+    if any(ad.is_undefined_primal(i) for i in index):
+        raise ValueError("scatter_rows is linear in its rows, not in its node indices")
+    if type(cotangent) is ad.Zero:
+        return [None] * count + [ad.Zero(r.aval) for r in rows]
+    c = cotangent.shape[-1]
+    padded = jnp.pad(cotangent, ((0, 0), (0, _padded_width(c) - c)))
+    return [None] * count + [
+        jax.lax.gather(padded, i[:, None], _BLOCK_GATHER, (r.aval.shape[1], padded.shape[1]), mode=_IN_BOUNDS)[..., :c]
+        for i, r in zip(index, rows)
+    ]
+
+
+def _scatter_rows_batch(args, dims, *, num_nodes: int):
+    count = len(args) // 2
+    size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+    if not _fits_int32(size, num_nodes):
+        return jax.vmap(functools.partial(_scatter_rows_impl, num_nodes=num_nodes), in_axes=dims)(*args), 0
+    args = [_batch_at_front(a, d, size) for a, d in zip(args, dims)]
+    index = [_shift_batch(i, num_nodes) for i in args[:count]]
+    rows = [r.reshape((-1,) + r.shape[2:]) for r in args[count:]]
+    out = _scatter_rows_p.bind(*index, *rows, num_nodes=size * num_nodes)
+    return out.reshape((size, num_nodes) + out.shape[1:]), 0
+
+
+_scatter_rows_p = Primitive("jaxmpm_scatter_rows")
+_scatter_rows_p.def_impl(_scatter_rows_impl)
+_scatter_rows_p.def_abstract_eval(
+    lambda *avals, num_nodes: jax.core.ShapedArray((num_nodes, avals[-1].shape[-1]), avals[-1].dtype)
+)
+mlir.register_lowering(_scatter_rows_p, mlir.lower_fun(_scatter_rows_impl, multiple_results=False))
+ad.primitive_jvps[_scatter_rows_p] = _scatter_rows_jvp
+ad.primitive_transposes[_scatter_rows_p] = _scatter_rows_transpose
+batching.primitive_batchers[_scatter_rows_p] = _scatter_rows_batch
 
 
 def _stencil_moments(

@@ -38,7 +38,7 @@ from .state import (
     compute_stencil,
     gather_rows,
     offset_weight,
-    scatter_rows,
+    scatter_stencil,
     stencil_index,
     stencil_moments,
     stencil_offsets,
@@ -126,8 +126,8 @@ def p2g(
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
-    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``: one packed ``[mass, momentum]`` scatter per
-    stencil offset into one grid buffer (:func:`jaxmpm.state.scatter_rows`).
+    ``w_ip [m_p, m_p v_p + A_p (x_i - x_p)]``: packed ``[mass, momentum]`` rows scattered into
+    one grid buffer, one scatter per run of 3 stencil nodes (:func:`jaxmpm.state.scatter_stencil`).
     With a CPIC ``contact``, nodes on the other side of a collider from the particle receive
     nothing (no mass, momentum or stress): that share goes to the collider.
 
@@ -147,17 +147,24 @@ def p2g(
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
     columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
-    rows = []
-    for o, offset in enumerate(stencil_offsets(dim)):
-        weight = offset_weight(st, offset)
+
+    def offset_weights(st, incompatible):
+        weights = [offset_weight(st, offset) for offset in stencil_offsets(dim)]
         if incompatible is not None:
-            weight = jnp.where(incompatible[o], 0.0, weight)
+            weights = [jnp.where(incompatible[o], 0.0, w) for o, w in enumerate(weights)]
+        return weights
+
+    # Stored once, and in forward mode their k tangents per offset: each row fusion would
+    # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
+    weights = compute_once(offset_weights, st, incompatible, token=always_true(st.base))
+    rows = []
+    for weight, offset in zip(weights, stencil_offsets(dim)):
         momentum = base_momentum
         for d, od in enumerate(offset):
             if od:
                 momentum = momentum + od * columns[d]
         rows.append(weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1))
-    packed = scatter_rows(grid.num_nodes, stencil_index(grid, st), rows)
+    packed = scatter_stencil(grid, st, rows)
     return packed[:, 0], packed[:, 1:]
 
 
@@ -192,7 +199,7 @@ def p2g_boundary(
         mass = jnp.where(inside, m_b, 0.0)
         values = mass[:, None] * jnp.concatenate([jnp.ones_like(mass)[:, None], vb], axis=-1)
         rows = [offset_weight(st, offset)[:, None] * values for offset in stencil_offsets(grid.dim)]
-        packed = packed + scatter_rows(grid.num_nodes, stencil_index(grid, st), rows)
+        packed = packed + scatter_stencil(grid, st, rows)
     return packed[:, 0], packed[:, 1:]
 
 

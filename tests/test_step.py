@@ -147,6 +147,52 @@ def test_gather_rows_rule_matches_plain_indexing(dim):
 
 
 @pytest.mark.x64
+@pytest.mark.parametrize("batching", ["shifted", "jax"])
+def test_scatter_stencil_rules_match_plain_scatter(dim, batching, monkeypatch):
+    """:func:`jaxmpm.state.scatter_stencil` (P2G's scatter, a primitive with its own rules):
+    value, batched Jacobian-vector products, transpose, a batch of stencils and a batch of
+    batches equal plain per-node ``.at[].add``; with 3-wide rows (padded inside), under
+    ``jax.jit``, with the batching rule's shifted indices and with its fallback to JAX's own
+    batching (taken when the shifted indices would overflow int32)."""
+    from jaxmpm import state as state_module
+    from jaxmpm.state import scatter_stencil, stencil_index
+
+    if batching == "jax":
+        monkeypatch.setattr(state_module, "_fits_int32", lambda size, num_nodes: False)
+    grid = Grid(lo=(0.0,) * dim, hi=(1.0,) * dim, dx=0.1)
+    keys = jax.random.split(jax.random.PRNGKey(6), 6)
+    n, c, k = 30, 3, 4
+    xs = jax.random.uniform(keys[0], (2, n, dim), jnp.float64, 0.1, 0.9)  # two stencils
+    rows = jax.random.normal(keys[1], (3**dim, n, c), jnp.float64)
+
+    def plain(x, r):
+        index = stencil_index(grid, compute_stencil(grid, x))
+        out = jnp.zeros((grid.num_nodes, c), r.dtype)
+        for node, row in zip(index, r):
+            out = out.at[node].add(row)
+        return out
+
+    def mine(x, r):
+        return scatter_stencil(grid, compute_stencil(grid, x), list(r))
+
+    def close(a, b):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+
+    close(jax.jit(mine)(xs[0], rows), plain(xs[0], rows))
+    drows = jax.random.normal(keys[2], (k, *rows.shape), jnp.float64)
+    close(*(jax.jit(jax.vmap(lambda d: jax.jvp(lambda r: fn(xs[0], r), (rows,), (d,))[1]))(drows)
+            for fn in (mine, plain)))
+    cot = jax.random.normal(keys[3], (grid.num_nodes, c), jnp.float64)
+    close(*(jax.vjp(lambda r: fn(xs[0], r), rows)[1](cot)[0] for fn in (mine, plain)))
+    batch_rows = jax.random.normal(keys[4], (2, *rows.shape), jnp.float64)
+    close(*(jax.vmap(fn)(xs, batch_rows) for fn in (mine, plain)))  # index and rows batched
+    close(*(jax.vmap(fn, in_axes=(0, None))(xs, rows) for fn in (mine, plain)))  # index batched only
+    nested = (jax.vmap(lambda x, r: jax.vmap(lambda d: jax.jvp(lambda q: fn(x, q), (r,), (d,))[1])(drows))
+              for fn in (mine, plain))
+    close(*(f(xs, batch_rows) for f in nested))
+
+
+@pytest.mark.x64
 @pytest.mark.parametrize("model_name", ["elastic", "newtonian"])
 def test_mass_and_momentum_are_conserved_without_boundaries(dim, model_name):
     material = {"elastic": {"model": "elastic", "E": 1e4, "nu": 0.3}, "newtonian": {"model": "newtonian", "mu": 1.0, "kappa": 1e4}}[model_name]
