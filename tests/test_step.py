@@ -100,20 +100,36 @@ def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_diff
 
 @pytest.mark.x64
 def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
-    """:func:`jaxmpm.constitutive.base.matmul` (elementwise value, dot-based rule that moves
-    tangents to the right of its products): its value, its Jacobian-vector products batched
-    over directions and its vector-Jacobian products equal ``jnp.matmul``'s."""
+    """:func:`jaxmpm.constitutive.base.matmul` (a primitive: elementwise value and tangents,
+    dot-based transpose): its value, Jacobian-vector products batched over directions,
+    vector-Jacobian products, second derivatives and batches in which one operand is shared
+    or broadcast equal ``jnp.matmul``'s."""
     from jaxmpm.constitutive.base import matmul
 
-    keys = jax.random.split(jax.random.PRNGKey(4), 5)
+    keys = jax.random.split(jax.random.PRNGKey(4), 7)
     a, b = (jax.random.normal(key, (7, dim, dim), jnp.float64) for key in keys[:2])
     da, db = (jax.random.normal(key, (4, 7, dim, dim), jnp.float64) for key in keys[2:4])
-    np.testing.assert_allclose(matmul(a, b), jnp.matmul(a, b), rtol=1e-14)
+
+    def close(x, y):
+        np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-14)
+
+    close(jax.jit(matmul)(a, b), jnp.matmul(a, b))
     mine, plain = (jax.vmap(lambda s, t: jax.jvp(fn, (a, b), (s, t))[1])(da, db) for fn in (matmul, jnp.matmul))
-    np.testing.assert_allclose(mine, plain, rtol=1e-13, atol=1e-14)
+    close(mine, plain)
     cot = jax.random.normal(keys[4], (7, dim, dim), jnp.float64)
     for m, p in zip(jax.vjp(matmul, a, b)[1](cot), jax.vjp(jnp.matmul, a, b)[1](cot)):
-        np.testing.assert_allclose(m, p, rtol=1e-13, atol=1e-14)
+        close(m, p)
+    # second order (the transpose's dots differentiated again), and grad of a vmap
+    loss = [lambda x, y, fn=fn: jnp.sum(jnp.sin(fn(x, y))) for fn in (matmul, jnp.matmul)]
+    close(*(jax.hessian(f, argnums=(0, 1))(a[0], b[0])[0][1] for f in loss))
+    close(*(jax.grad(lambda x, f=f: jnp.sum(jax.vmap(f, (None, 0))(x, da)))(a) for f in loss))
+    # one operand shared by a batch (vmap) or broadcast over the other's batch dimensions
+    close(*(jax.vmap(fn, (0, None))(da, b) for fn in (matmul, jnp.matmul)))
+    close(*(jax.vmap(fn, (None, 0))(a, db) for fn in (matmul, jnp.matmul)))
+    close(*(jax.vmap(fn, (0, None))(da[:, 0], b) for fn in (matmul, jnp.matmul)))  # (D, D) @ (7, D, D)
+    eye = jnp.eye(dim, dtype=jnp.float64)
+    for m, p in zip(*(jax.vjp(fn, eye, b)[1](cot) for fn in (matmul, jnp.matmul))):
+        close(m, p)
 
 
 @pytest.mark.x64

@@ -8,6 +8,8 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Float
 
 from ..errors import SceneError
@@ -37,37 +39,65 @@ def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:
     )
 
 
-@jax.custom_jvp
 def matmul(a: Float[Array, "... I J"], b: Float[Array, "... J K"]) -> Float[Array, "... I K"]:
-    """``a @ b`` for batches of small matrices: the value as ``J`` broadcast products summed
-    elementwise, the forward-mode rule as dot ops that keep the tangent on the right of both
-    products, ``d(a b) = (b^T da^T)^T + a db``.
+    """``a @ b`` for batches of small matrices (leading dimensions broadcast), a JAX primitive
+    with its own rules so that each mode gets the form XLA's CPU compiler runs fastest:
 
-    - Value: XLA's CPU compiler fuses and vectorises elementwise products over the batch; its
-      dot op on 3x3 blocks pays a per-block cost (the corotated stress ~1.5x faster; exact
-      float32 or float64 arithmetic at any ``jax_default_matmul_precision``).
-    - Rule: dots, because reverse mode transposes the rule, and the transpose of elementwise
-      products is a sum over a 3-wide axis that XLA runs far slower than a dot: elementwise
-      rules made the corotated material's forward mode 2-3x faster, but its gradient 3x and
-      a 200-step rollout's gradient 1.5x slower (docs/benchmarks.md, session 25).
-    - Under ``jax.vmap`` over tangent directions JAX folds the directions into the free
-      dimension of the operand that carries them, and XLA's CPU dot is 4-6x slower on
-      ``(N, k D, D) @ (N, D, D)`` than on ``(N, D, D) @ (N, D, k D)`` (session 24).
-    - The rule's dots are at full precision (``Precision.HIGHEST``): JAX may trace the rule
+    - Value and forward mode: ``J`` broadcast products summed elementwise, the tangent
+      ``da b + a db`` as two more such products. XLA fuses and vectorises them over the batch;
+      its dot op on 3x3 blocks pays a per-block cost (the corotated stress ~1.5x faster), and
+      dots on tangents batched by ``jax.vmap`` were slower still (session 24).
+    - Reverse mode: the transpose is two dot ops, ``ct b^T`` and ``a^T ct``. The transpose of
+      the elementwise form is a sum over a 3-wide axis that XLA runs far slower than a dot:
+      with elementwise derivatives everywhere, a 200-step rollout's gradient was 1.5x slower
+      (docs/benchmarks.md, session 25). A primitive keeps the two apart (a ``custom_jvp``
+      rule is both the forward rule and, transposed, the reverse one).
+    - Values are exact float32 or float64 arithmetic at any ``jax_default_matmul_precision``;
+      the transpose's dots are at full precision (``Precision.HIGHEST``): JAX may trace them
       after :func:`jaxmpm.precision.full_precision`'s context has closed (under
       ``jax.checkpoint`` in reverse mode).
     """
+    dtype = jnp.result_type(a, b)
+    return _matmul_p.bind(jnp.asarray(a, dtype), jnp.asarray(b, dtype))
+
+
+def _matmul_impl(a, b):
     return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
+
+
+def _matmul_abstract(a, b):
+    batch = jnp.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    return jax.core.ShapedArray((*batch, a.shape[-2], b.shape[-1]), a.dtype)
 
 
 def _dot(a, b):
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
-@matmul.defjvp
-def _matmul_jvp(primals, tangents):
-    (a, b), (da, db) = primals, tangents
-    return matmul(a, b), _dot(b.mT, da.mT).mT + _dot(a, db)
+def _sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
+    """``g`` summed over the leading dimensions that broadcasting added to ``shape``."""
+    g = g.sum(axis=tuple(range(g.ndim - len(shape))))
+    broadcast = tuple(i for i, (n, m) in enumerate(zip(shape, g.shape)) if n == 1 and m != 1)
+    return g.sum(axis=broadcast, keepdims=True) if broadcast else g
+
+
+def _matmul_batch(args, dims):
+    size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
+    a, b = (x[None] if d is None else batching.bdim_at_front(x, d, size) for x, d in zip(args, dims))
+    a, b = (x.reshape(x.shape[:1] + (1,) * (max(a.ndim, b.ndim) - x.ndim) + x.shape[1:]) for x in (a, b))
+    return _matmul_p.bind(a, b), 0
+
+
+_matmul_p = Primitive("jaxmpm_small_matmul")
+_matmul_p.def_impl(_matmul_impl)
+_matmul_p.def_abstract_eval(_matmul_abstract)
+mlir.register_lowering(_matmul_p, mlir.lower_fun(_matmul_impl, multiple_results=False))
+ad.defbilinear(
+    _matmul_p,
+    lambda ct, a, b: _sum_to_shape(_dot(ct, b.mT), a.aval.shape),
+    lambda ct, a, b: _sum_to_shape(_dot(a.mT, ct), b.aval.shape),
+)
+batching.primitive_batchers[_matmul_p] = _matmul_batch
 
 
 def lame_from_young(E, nu):

@@ -22,9 +22,9 @@ simulation. :func:`svd` fixes both:
 * The derivative is a :func:`jax.custom_jvp` (so ``jax.jvp``/``jax.jacfwd`` work, and
   ``jax.grad``/``jax.vjp`` by transposition of the linear rule) using the standard
   SVD differentials, written in the split form that keeps the symmetric and the
-  antisymmetric parts of ``dP = U^T dF V`` apart (its matrix products are batched
-  ``matmul``s: with elementwise code XLA fuses the whole forward graph into the
-  tangent's output fusion and recomputes it per entry, ~3x slower on CPU)::
+  antisymmetric parts of ``dP = U^T dF V`` apart (its matrix products are
+  :func:`jaxmpm.constitutive.base.matmul`: elementwise in forward mode, dot ops in
+  reverse mode's transpose)::
 
       d sigma_i = dP_ii
       U^T dU = Omega_U,  V^T dV = Omega_V   (antisymmetric), for i != j:
@@ -85,6 +85,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+from .base import matmul
 
 __all__ = ["svd"]
 
@@ -329,18 +331,12 @@ def _svd_jvp(primals, tangents):
     k_sym = jnp.where(off, 0.5 / _clamp_signed(sj - si, lo), 0.0)  # antisymmetric
     k_skew = jnp.where(off, 0.5 / _clamp_signed(si + sj, lo), 0.0)  # symmetric
 
-    # Batched matmuls (dot ops) rather than elementwise code: XLA materialises their
-    # operands, whereas an elementwise formulation gets the deep forward graph fused
-    # (and recomputed per output entry) into the tangent's concatenate fusion.
-    Ut = jnp.swapaxes(U, -1, -2)
-    # U^T dF V, written (V^T (U^T dF)^T)^T so that the tangent is the right operand of both
-    # products (see constitutive.base.matmul: 4-6x faster under vmap over tangent directions).
-    dP = jnp.matmul(V.mT, jnp.matmul(Ut, dF).mT).mT
+    dP = matmul(matmul(U.mT, dF), V)
     dPt = jnp.swapaxes(dP, -1, -2)
     sym = (dP + dPt) * k_sym
     skew = (dP - dPt) * k_skew
-    dU = jnp.matmul(U, sym + skew)  # U Omega_U
-    dV = jnp.matmul(V, sym - skew)  # V Omega_V
+    dU = matmul(U, sym + skew)  # U Omega_U
+    dV = matmul(V, sym - skew)  # V Omega_V
     dsigma = jnp.diagonal(dP, axis1=-2, axis2=-1)
     return (U, sigma, V), (dU, dsigma, dV)
 
