@@ -278,14 +278,14 @@ def apply_grid_colliders(
 
 
 def apply_domain_walls(grid: Grid, nodes: Float[Array, "G D"], v: Float[Array, "G D"]) -> Float[Array, "G D"]:
-    """Slip walls: nodes on or beyond the domain's faces lose their outward velocity.
-
-    A select on the primal's signs, not ``maximum``/``minimum``: its tangent is a select too,
-    where theirs re-derives the primal and a tie rule per tangent entry (the forward-mode grid
-    update was 20x the primal one)."""
-    lo, hi = (jnp.asarray(b, v.dtype) for b in (grid.lo, grid.hi))
-    outward = ((nodes <= lo) & (v < 0.0)) | ((nodes >= hi) & (v > 0.0))
-    return jnp.where(outward, 0.0, v)
+    """Slip walls: nodes on or beyond the domain's faces lose their outward velocity."""
+    columns = []
+    for d in range(grid.dim):
+        vd = v[:, d]
+        vd = jnp.where(nodes[:, d] <= grid.lo[d], jnp.maximum(vd, 0.0), vd)
+        vd = jnp.where(nodes[:, d] >= grid.hi[d], jnp.minimum(vd, 0.0), vd)
+        columns.append(vd)
+    return jnp.stack(columns, axis=-1)
 
 
 def g2p(
