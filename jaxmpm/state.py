@@ -234,19 +234,21 @@ def stencil_terms(grid: Grid, st: Stencil):
 # into per-offset ``(N, C)`` blocks: reverse mode transposes it into one scatter (and the
 # split into one concatenation). With 3^D separate gathers, each transposes into its own
 # zero-filled grid-sized buffer and the buffers are summed, which made G2P's backward pass
-# ~10x the forward (docs/benchmarks.md). P2G scatters per offset into one buffer updated in
-# place (the transpose, a gather per offset, is cheap). Rows are padded to a power-of-two
-# width: XLA's CPU scatter-add is 4-5x slower on 3-wide rows than on 4-wide ones (measured).
+# ~10x the forward (docs/benchmarks.md). P2G scatters per block of 3 consecutive nodes into
+# one buffer updated in place (the transpose, a gather per block, is cheap). Rows are padded to
+# a power-of-two width: XLA's CPU scatter-add is 4-5x slower on 3-wide rows than on 4-wide ones
+# (measured).
 #
-# P2G's scatter is a JAX primitive of its own with three rules: its tangent is the same
-# scatter of the tangent rows (it is linear in them), its transpose is one gather per offset,
-# and under ``jax.vmap`` a batch of B is ONE scatter per offset of the ``B N`` stacked rows
-# into a ``(B G, C)`` buffer, the indices shifted by ``b G``. JAX's own batching of a scatter
-# makes the batch a window dimension, which XLA's CPU backend lays out particle-major,
-# ``(N, B, C)``: forward-mode Jacobians (``vmap`` of ``jvp`` over k tangent directions) then
-# transposed every tangent row on its way to the grid (docs/benchmarks.md, session 26). G2P's
-# gather reaches the same layout with a conditional (:func:`gather_rows`); a primitive with
-# the same batching rule was measured slower there (XLA then fused the grid update into it).
+# P2G's scatter (:func:`scatter_blocks`) is a JAX primitive of its own with three rules: its
+# tangent is the same scatter of the tangent rows (it is linear in them), its transpose is one
+# gather per block, and under ``jax.vmap`` a batch of B is ONE scatter per block of the ``B N``
+# stacked rows into a ``(B G, C)`` buffer, the indices shifted by ``b G``. JAX's own batching
+# of a scatter makes the batch a window dimension, which XLA's CPU backend lays out
+# particle-major, ``(N, B, C)``: forward-mode Jacobians (``vmap`` of ``jvp`` over k tangent
+# directions) then transposed every tangent row on its way to the grid (docs/benchmarks.md,
+# session 26). G2P's gather reaches the same layout with a conditional (:func:`gather_rows`);
+# a primitive with the same batching rule was measured slower there (XLA then fused the grid
+# update into it).
 
 
 def stencil_index(grid: Grid, st: Stencil) -> list[Int[Array, " N"]]:
@@ -298,10 +300,10 @@ def scatter_blocks(
 ) -> Float[Array, "G C"]:
     """``sum_o sum_w zeros(G, C).at[index[o] + w].add(blocks[o][:, w])``: one grid buffer
     updated in place by one scatter per block (indices in bounds, see :func:`compute_stencil`)."""
-    return _scatter_rows_p.bind(*index, *blocks, num_nodes=num_nodes)
+    return _scatter_blocks_p.bind(*index, *blocks, num_nodes=num_nodes)
 
 
-def _scatter_rows_impl(*args: Array, num_nodes: int) -> Float[Array, "G C"]:
+def _scatter_blocks_impl(*args: Array, num_nodes: int) -> Float[Array, "G C"]:
     count = len(args) // 2
     index, rows = args[:count], args[count:]
     c = rows[0].shape[-1]
@@ -313,21 +315,21 @@ def _scatter_rows_impl(*args: Array, num_nodes: int) -> Float[Array, "G C"]:
     return out[:, :c]
 
 
-def _scatter_rows_jvp(primals, tangents, *, num_nodes: int):
+def _scatter_blocks_jvp(primals, tangents, *, num_nodes: int):
     count = len(primals) // 2
-    out = _scatter_rows_p.bind(*primals, num_nodes=num_nodes)
+    out = _scatter_blocks_p.bind(*primals, num_nodes=num_nodes)
     drows = tangents[count:]
     if all(type(t) is ad.Zero for t in drows):
         return out, ad.Zero.from_primal_value(out)
     drows = [ad.instantiate_zeros(t) for t in drows]
-    return out, _scatter_rows_p.bind(*primals[:count], *drows, num_nodes=num_nodes)
+    return out, _scatter_blocks_p.bind(*primals[:count], *drows, num_nodes=num_nodes)
 
 
-def _scatter_rows_transpose(cotangent, *args, num_nodes: int):
+def _scatter_blocks_transpose(cotangent, *args, num_nodes: int):
     count = len(args) // 2
     index, rows = args[:count], args[count:]
     if any(ad.is_undefined_primal(i) for i in index):
-        raise ValueError("scatter_rows is linear in its rows, not in its node indices")
+        raise ValueError("scatter_blocks is linear in its blocks, not in its node indices")
     if type(cotangent) is ad.Zero:
         return [None] * count + [ad.Zero(r.aval) for r in rows]
     c = cotangent.shape[-1]
@@ -338,27 +340,27 @@ def _scatter_rows_transpose(cotangent, *args, num_nodes: int):
     ]
 
 
-def _scatter_rows_batch(args, dims, *, num_nodes: int):
+def _scatter_blocks_batch(args, dims, *, num_nodes: int):
     count = len(args) // 2
     size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
     if not _fits_int32(size, num_nodes):
-        return jax.vmap(functools.partial(_scatter_rows_impl, num_nodes=num_nodes), in_axes=dims)(*args), 0
+        return jax.vmap(functools.partial(_scatter_blocks_impl, num_nodes=num_nodes), in_axes=dims)(*args), 0
     args = [_batch_at_front(a, d, size) for a, d in zip(args, dims)]
     index = [_shift_batch(i, num_nodes) for i in args[:count]]
     rows = [r.reshape((-1,) + r.shape[2:]) for r in args[count:]]
-    out = _scatter_rows_p.bind(*index, *rows, num_nodes=size * num_nodes)
+    out = _scatter_blocks_p.bind(*index, *rows, num_nodes=size * num_nodes)
     return out.reshape((size, num_nodes) + out.shape[1:]), 0
 
 
-_scatter_rows_p = Primitive("jaxmpm_scatter_rows")
-_scatter_rows_p.def_impl(_scatter_rows_impl)
-_scatter_rows_p.def_abstract_eval(
+_scatter_blocks_p = Primitive("jaxmpm_scatter_blocks")
+_scatter_blocks_p.def_impl(_scatter_blocks_impl)
+_scatter_blocks_p.def_abstract_eval(
     lambda *avals, num_nodes: jax.core.ShapedArray((num_nodes, avals[-1].shape[-1]), avals[-1].dtype)
 )
-mlir.register_lowering(_scatter_rows_p, mlir.lower_fun(_scatter_rows_impl, multiple_results=False))
-ad.primitive_jvps[_scatter_rows_p] = _scatter_rows_jvp
-ad.primitive_transposes[_scatter_rows_p] = _scatter_rows_transpose
-batching.primitive_batchers[_scatter_rows_p] = _scatter_rows_batch
+mlir.register_lowering(_scatter_blocks_p, mlir.lower_fun(_scatter_blocks_impl, multiple_results=False))
+ad.primitive_jvps[_scatter_blocks_p] = _scatter_blocks_jvp
+ad.primitive_transposes[_scatter_blocks_p] = _scatter_blocks_transpose
+batching.primitive_batchers[_scatter_blocks_p] = _scatter_blocks_batch
 
 
 def _stencil_moments(
