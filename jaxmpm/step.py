@@ -15,6 +15,8 @@ Every function here is pure and dimension-generic (D = 2 or 3 from array shapes)
 
 from __future__ import annotations
 
+import functools
+
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -277,8 +279,14 @@ def apply_grid_colliders(
     return v
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def apply_domain_walls(grid: Grid, nodes: Float[Array, "G D"], v: Float[Array, "G D"]) -> Float[Array, "G D"]:
-    """Slip walls: nodes on or beyond the domain's faces lose their outward velocity."""
+    """Slip walls: nodes on or beyond the domain's faces lose their outward velocity.
+
+    The tangent is a select on the primal's signs: JAX's derivative of ``maximum``/``minimum``
+    re-derived the primal and a tie rule per tangent entry (the forward-mode grid update cost
+    20x the primal one). The value keeps ``maximum``/``minimum``: programs with and without a
+    null extension must round alike (``test_each_extension_alone_is_bitwise_null``)."""
     columns = []
     for d in range(grid.dim):
         vd = v[:, d]
@@ -286,6 +294,15 @@ def apply_domain_walls(grid: Grid, nodes: Float[Array, "G D"], v: Float[Array, "
         vd = jnp.where(nodes[:, d] >= grid.hi[d], jnp.minimum(vd, 0.0), vd)
         columns.append(vd)
     return jnp.stack(columns, axis=-1)
+
+
+@apply_domain_walls.defjvp
+def _domain_walls_jvp(grid: Grid, primals, tangents):
+    nodes, v = primals
+    dv = tangents[1]
+    lo, hi = (jnp.asarray(b, v.dtype) for b in (grid.lo, grid.hi))
+    outward = ((nodes <= lo) & (v < 0.0)) | ((nodes >= hi) & (v > 0.0))
+    return apply_domain_walls(grid, nodes, v), jnp.where(outward, 0.0, dv)
 
 
 def g2p(

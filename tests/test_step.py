@@ -163,6 +163,35 @@ def test_gather_rows_rule_matches_plain_indexing(dim):
 
 
 @pytest.mark.x64
+def test_domain_walls_rule_matches_autodiff_of_the_walls(dim):
+    """:func:`jaxmpm.step.apply_domain_walls` has a hand-written tangent (a select): its value,
+    batched Jacobian-vector products and vector-Jacobian products equal JAX's derivatives of
+    the same function, on nodes inside, on and beyond the walls, with inward and outward
+    velocities (none exactly zero, where ``maximum``'s tie rule would differ)."""
+    from jaxmpm.step import apply_domain_walls, node_coordinates
+
+    grid = Grid(lo=(0.2,) * dim, hi=(0.8,) * dim, dx=0.1)
+    nodes = node_coordinates(grid, jnp.float64)
+    keys = jax.random.split(jax.random.PRNGKey(7), 3)
+    v = jax.random.normal(keys[0], nodes.shape, jnp.float64)
+    walled = (nodes <= 0.2) | (nodes >= 0.8)
+    assert bool(jnp.any(walled & (v < 0))) and bool(jnp.any(walled & (v > 0)))
+
+    def mine(u):
+        return apply_domain_walls(grid, nodes, u)
+
+    def plain(u):
+        return apply_domain_walls.fun(grid, nodes, u)
+
+    np.testing.assert_array_equal(mine(v), plain(v))
+    dv = jax.random.normal(keys[1], (3, *v.shape), jnp.float64)
+    ours, theirs = (jax.vmap(lambda d: jax.jvp(fn, (v,), (d,))[1])(dv) for fn in (mine, plain))
+    np.testing.assert_array_equal(ours, theirs)
+    cot = jax.random.normal(keys[2], v.shape, jnp.float64)
+    np.testing.assert_array_equal(*(jax.vjp(fn, v)[1](cot)[0] for fn in (mine, plain)))
+
+
+@pytest.mark.x64
 @pytest.mark.parametrize("batching", ["shifted", "jax"])
 def test_scatter_stencil_rules_match_plain_scatter(dim, batching, monkeypatch):
     """:func:`jaxmpm.state.scatter_stencil` (P2G's scatter, a primitive with its own rules):
