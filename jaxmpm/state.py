@@ -201,6 +201,12 @@ def offset_weight(st: Stencil, offset: tuple[int, ...]) -> Float[Array, " N"]:
     return functools.reduce(operator.mul, [st.w[o][d] for d, o in enumerate(offset)])
 
 
+def stencil_weights(st: Stencil, incompatible: Bool[Array, "K N"] | None = None) -> list[Float[Array, " N"]]:
+    """The weights ``(N,)`` of all 3^D stencil nodes (the order of :func:`stencil_offsets`);
+    nodes marked ``incompatible`` ``(3^D, N)`` (CPIC) get weight 0."""
+    return _masked([offset_weight(st, o) for o in stencil_offsets(st.dim)], incompatible)
+
+
 def flat_index(shape: tuple[int, ...], node: Int[Array, "N D"]) -> Int[Array, " N"]:
     """Flat (C-order) index of every ``node`` in a grid of ``shape``."""
     return sum(node[:, d] * s for d, s in enumerate(grid_strides(shape)))
@@ -407,7 +413,7 @@ def stencil_moments(
     must be :func:`bspline_weights` of ``st.fx`` (as :func:`compute_stencil` makes it).
     """
     offsets = stencil_offsets(st.dim)
-    return _stencil_moments(offsets, _masked([offset_weight(st, o) for o in offsets], incompatible), values)
+    return _stencil_moments(offsets, stencil_weights(st, incompatible), values)
 
 
 @stencil_moments.defjvp
@@ -415,7 +421,7 @@ def _stencil_moments_jvp(primals, tangents):
     st, incompatible, values = primals
     dst, _, dvalues = tangents
     offsets = stencil_offsets(st.dim)
-    weights = _masked([offset_weight(st, o) for o in offsets], incompatible)
+    weights = stencil_weights(st, incompatible)
     out = _stencil_moments(offsets, weights, values)
     # d/dfx_e of (v, M), e = 0 .. D-1: primal only
     by_axis = [_stencil_moments(offsets, p, values) for p in _weight_partials(st, offsets, incompatible)]

@@ -16,7 +16,6 @@ Every function here is pure and dimension-generic (D = 2 or 3 from array shapes)
 from __future__ import annotations
 
 import functools
-
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -44,6 +43,7 @@ from .state import (
     stencil_index,
     stencil_moments,
     stencil_offsets,
+    stencil_weights,
 )
 
 __all__ = [
@@ -149,16 +149,9 @@ def p2g(
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
     columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
-
-    def offset_weights(st, incompatible):
-        weights = [offset_weight(st, offset) for offset in stencil_offsets(dim)]
-        if incompatible is not None:
-            weights = [jnp.where(incompatible[o], 0.0, w) for o, w in enumerate(weights)]
-        return weights
-
     # Stored once, and in forward mode their k tangents per offset: each row fusion would
     # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
-    weights = compute_once(offset_weights, st, incompatible, token=always_true(st.base))
+    weights = compute_once(stencil_weights, st, incompatible, token=always_true(st.base))
     rows = []
     for weight, offset in zip(weights, stencil_offsets(dim)):
         momentum = base_momentum
