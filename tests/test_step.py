@@ -106,14 +106,14 @@ def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
     or broadcast equal ``jnp.matmul``'s."""
     from jaxmpm.constitutive.base import matmul
 
-    keys = jax.random.split(jax.random.PRNGKey(4), 7)
+    keys = jax.random.split(jax.random.PRNGKey(4), 5)
     a, b = (jax.random.normal(key, (7, dim, dim), jnp.float64) for key in keys[:2])
     da, db = (jax.random.normal(key, (4, 7, dim, dim), jnp.float64) for key in keys[2:4])
 
     def close(x, y):
         np.testing.assert_allclose(x, y, rtol=1e-13, atol=1e-14)
 
-    close(jax.jit(matmul)(a, b), jnp.matmul(a, b))
+    np.testing.assert_allclose(jax.jit(matmul)(a, b), jnp.matmul(a, b), rtol=1e-14)
     mine, plain = (jax.vmap(lambda s, t: jax.jvp(fn, (a, b), (s, t))[1])(da, db) for fn in (matmul, jnp.matmul))
     close(mine, plain)
     cot = jax.random.normal(keys[4], (7, dim, dim), jnp.float64)
