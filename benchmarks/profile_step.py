@@ -2,7 +2,7 @@
 
     pip install xprof                     # reads jax.profiler's traces (not a jaxmpm dependency)
     python benchmarks/profile_step.py [--material corotated] [--particles 25000] [--grid 64]
-                                      [--repeats 10] [--json out.json] [--tangents K]
+                                      [--repeats 10] [--json out.json] [--tangents K] [--steps S]
 
 Traces ``--repeats`` calls of (a) the jitted step and (b) the jitted gradient of a loss of
 one step with respect to the parameters and the state, with :func:`jax.profiler.trace`. Every
@@ -16,6 +16,12 @@ wall time: on 2 cores the wall time is between the total / 2 and the total.
 ``--tangents K`` profiles forward mode instead of (b): ``jax.vmap`` of ``jax.jvp`` of the step
 over K tangent directions of the parameters and the state (what a Levenberg–Marquardt
 Jacobian of K parameters does at every step of a rollout), against the step itself.
+
+``--steps S`` (S > 1) profiles a rollout of S steps (one ``lax.scan``; in the gradient every
+step under ``jax.checkpoint``, as ``bench_grad.py`` does) and reports CPU ms per step. This is
+what a fit runs: a single step's profile also counts first-touch costs of its freshly
+allocated buffers, which a rollout's loop pays once (zero-filling the k = 6 tangent grid:
+7.6 ms in one step, 0.9–1.1 ms per step of a 10-step rollout; docs/benchmarks.md, session 27).
 """
 
 from __future__ import annotations
@@ -63,8 +69,25 @@ def _trace_events(log_dir: str) -> list[dict]:
     return json.loads(data)["traceEvents"]
 
 
-def profile(fn, args, repeats: int) -> tuple[dict, float, float]:
-    """Per-op CPU ms per call of jitted ``fn(*args)``, and its wall and CPU ms per call."""
+def rollout(model, params, state, steps: int, checkpoint: bool = False):
+    """The state after ``steps`` steps: the step itself when ``steps == 1``, else one
+    ``lax.scan`` (each step under ``jax.checkpoint`` when ``checkpoint``)."""
+    import jax
+
+    from jaxmpm.step import step
+
+    def one(s):
+        return step(model, params, s)
+
+    if steps == 1:
+        return one(state)
+    advance = jax.checkpoint(one) if checkpoint else one
+    return jax.lax.scan(lambda s, _: (advance(s), None), state, None, length=steps)[0]
+
+
+def profile(fn, args, repeats: int, steps: int = 1) -> tuple[dict, float, float]:
+    """Per-op CPU ms of jitted ``fn(*args)``, and its wall and CPU ms, per call divided by
+    ``steps`` (per step of a rollout)."""
     import jax
 
     compiled = jax.jit(fn).lower(*args).compile()
@@ -81,11 +104,11 @@ def profile(fn, args, repeats: int) -> tuple[dict, float, float]:
     for e in events:
         op = e.get("args", {}).get("hlo_op")
         if e.get("ph") == "X" and op is not None:
-            per_op[op] += e["dur"] / 1e3 / repeats
+            per_op[op] += e["dur"] / 1e3 / repeats / steps
     # a conditional's event spans the ops of its branch, which have their own events
     containers = set(re.findall(r"^\s*(?:ROOT\s+)?%?([\w.\-]+) = .*? conditional\(", compiled.as_text(), re.M))
     table = {op: {"ms": ms, "op_name": names.get(op, "")} for op, ms in per_op.items() if op not in containers}
-    return table, 1e3 * wall / repeats, 1e3 * cpu / repeats
+    return table, 1e3 * wall / repeats / steps, 1e3 * cpu / repeats / steps
 
 
 def by_stage(table: dict) -> dict:
@@ -104,7 +127,10 @@ def main(argv=None) -> int:
     parser.add_argument("--top", type=int, default=15, help="list the most expensive ops")
     parser.add_argument("--json", default=None)
     parser.add_argument("--tangents", type=int, default=0, help="profile forward mode with K tangents instead")
+    parser.add_argument("--steps", type=int, default=1, help="profile a rollout of S steps (CPU ms per step)")
     args = parser.parse_args(argv)
+    if args.steps < 1 or args.repeats < 1 or args.tangents < 0:
+        parser.error("--steps and --repeats must be >= 1, --tangents >= 0")
 
     import jax
     import jax.numpy as jnp
@@ -120,16 +146,16 @@ def main(argv=None) -> int:
         state = advance(state)
 
     def forward(params, state):
-        return step(model, params, state)
+        return rollout(model, params, state, args.steps)
 
     def loss(params, state):
-        return jnp.mean(step(model, params, state).x ** 2)
+        return jnp.mean(rollout(model, params, state, args.steps, checkpoint=True).x ** 2)
 
     gradient = jax.grad(loss, argnums=(0, 1), allow_int=True)
-    fwd, fwd_wall, fwd_cpu = profile(forward, (params, state), args.repeats)
+    fwd, fwd_wall, fwd_cpu = profile(forward, (params, state), args.repeats, args.steps)
     if args.tangents:
         return _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu)
-    bwd, bwd_wall, bwd_cpu = profile(gradient, (params, state), args.repeats)
+    bwd, bwd_wall, bwd_cpu = profile(gradient, (params, state), args.repeats, args.steps)
 
     f_stage, b_stage = by_stage(fwd), by_stage(bwd)
     _print_header(args, model)
@@ -143,14 +169,18 @@ def main(argv=None) -> int:
     print(f"| **total in ops** | {f_sum:.2f} | {sum(v for (s, d), v in b_stage.items() if d == 'forward'):.2f} | "
           f"{sum(v for (s, d), v in b_stage.items() if d == 'backward'):.2f} | |")
     print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; gradient {bwd_wall:.2f} ms wall / "
-          f"{bwd_cpu:.2f} ms CPU per call (gradient ÷ step: {bwd_cpu / fwd_cpu:.1f}x CPU)")
+          f"{bwd_cpu:.2f} ms CPU {_per(args)} (gradient ÷ step: {bwd_cpu / fwd_cpu:.1f}x CPU)")
     _print_top_ops(bwd, args.top, "the gradient")
     _write_json(args, fwd, "gradient", bwd, [fwd_wall, bwd_wall], [fwd_cpu, bwd_cpu])
     return 0
 
 
+def _per(args) -> str:
+    return "per call" if args.steps == 1 else f"per step of a {args.steps}-step rollout"
+
+
 def _print_header(args, model, extra: str = "") -> None:
-    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms per call "
+    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms {_per(args)} "
           f"(summed over XLA's threads), {args.repeats} calls{extra}\n")
 
 
@@ -176,8 +206,6 @@ def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
     import jax
     import jax.numpy as jnp
 
-    from jaxmpm.step import step
-
     dynamic, static = eqx.partition(state, eqx.is_inexact_array)
     leaves, treedef = jax.tree_util.tree_flatten((params, dynamic))
     keys = jax.random.split(jax.random.PRNGKey(0), len(leaves))
@@ -187,11 +215,11 @@ def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
 
     def push(params, dynamic, tangents):
         def out(p, d):
-            return eqx.partition(step(model, p, eqx.combine(d, static)), eqx.is_inexact_array)[0]
+            return eqx.partition(rollout(model, p, eqx.combine(d, static), args.steps), eqx.is_inexact_array)[0]
 
         return jax.vmap(lambda t: jax.jvp(out, (params, dynamic), t)[1])(tangents)
 
-    tan, tan_wall, tan_cpu = profile(push, (params, dynamic, tangents), args.repeats)
+    tan, tan_wall, tan_cpu = profile(push, (params, dynamic, tangents), args.repeats, args.steps)
     f_stage, t_stage = by_stage(fwd), by_stage(tan)
     _print_header(args, model, f"; forward mode with {args.tangents} tangents")
     print("| stage | step | jvp of the step (primal + tangents) | jvp ÷ step |")
@@ -203,7 +231,7 @@ def _report_tangents(args, model, params, state, fwd, fwd_wall, fwd_cpu) -> int:
     f_sum, t_sum = sum(r["ms"] for r in fwd.values()), sum(r["ms"] for r in tan.values())
     print(f"| **total in ops** | {f_sum:.2f} | {t_sum:.2f} | {t_sum / f_sum:.1f} |")
     print(f"\nprocess: step {fwd_wall:.2f} ms wall / {fwd_cpu:.2f} ms CPU; jvp {tan_wall:.2f} ms wall / "
-          f"{tan_cpu:.2f} ms CPU per call")
+          f"{tan_cpu:.2f} ms CPU {_per(args)}")
     _print_top_ops(tan, args.top, "the jvp")
     _write_json(args, fwd, "jvp", tan, [fwd_wall, tan_wall], [fwd_cpu, tan_cpu])
     return 0
