@@ -81,6 +81,8 @@ which carries the sign of ``det F`` (the "rotation-variant SVD" of MPM codes).
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -323,13 +325,17 @@ def _svd_jvp(primals, tangents):
     gap_rel, _ = _gap_and_sweeps(F.dtype)
     floor = float(np.sqrt(np.finfo(jnp.dtype(F.dtype)).tiny))
     # Clamp level: half the tie-break gap, so it can only act when F ~ 0.
-    lo = ((0.5 * gap_rel) * jnp.maximum(jnp.abs(sigma[..., 0]), floor))[..., None, None]
-    si, sj = sigma[..., :, None], sigma[..., None, :]
-    off = ~np.eye(n, dtype=bool)
-    # Primal-only coefficients (the linear tangent map below is products only). The
-    # diagonal is masked out: Omega has a zero diagonal.
-    k_sym = jnp.where(off, 0.5 / _clamp_signed(sj - si, lo), 0.0)  # antisymmetric
-    k_skew = jnp.where(off, 0.5 / _clamp_signed(si + sj, lo), 0.0)  # symmetric
+    lo = (0.5 * gap_rel) * jnp.maximum(jnp.abs(sigma[..., 0]), floor)
+    # Primal-only coefficients (the linear tangent map below is products only), one division
+    # per pair i < j: k_sym[i, j] = 0.5 / (s_j - s_i) is antisymmetric, k_skew[i, j] =
+    # 0.5 / (s_i + s_j) symmetric, and both have a zero diagonal (so has Omega).
+    zero = jnp.zeros_like(sigma[..., 0])
+    k_sym, k_skew = [[zero] * n for _ in range(n)], [[zero] * n for _ in range(n)]
+    for i, j in itertools.combinations(range(n), 2):
+        a = 0.5 / _clamp_signed(sigma[..., j] - sigma[..., i], lo)
+        k_sym[i][j], k_sym[j][i] = a, -a
+        k_skew[i][j] = k_skew[j][i] = 0.5 / _clamp_signed(sigma[..., i] + sigma[..., j], lo)
+    k_sym, k_skew = _stack(k_sym), _stack(k_skew)
 
     dP = matmul(matmul(U.mT, dF), V)
     dPt = jnp.swapaxes(dP, -1, -2)
