@@ -191,6 +191,22 @@ def test_jvp_matches_finite_differences(dim):
         np.testing.assert_allclose(om, -np.swapaxes(om, -1, -2), atol=1e-12)
 
 
+def test_rotation_tangents_stay_rotations_at_ties(dim, dtype):
+    """``U^T dU`` and ``V^T dV`` are antisymmetric (U and V stay rotations to first order) and
+    finite on the awkward matrices too: repeated and zero singular values, down to F = 0,
+    where the tie-break gap vanishes and only the rule's clamp acts (it must keep the
+    coefficients' antisymmetry)."""
+    rng = np.random.default_rng(8)
+    F = _special(dim, rng).astype(dtype)
+    dF = rng.normal(size=F.shape).astype(dtype)
+    (U, _, V), (dU, _, dV) = jax.jit(lambda F, dF: jax.jvp(svd, (F,), (dF,)))(F, dF)
+    for Q, dQ in ((U, dU), (V, dV)):
+        om = np.swapaxes(np.asarray(Q, np.float64), -1, -2) @ np.asarray(dQ, np.float64)
+        assert np.isfinite(om).all()
+        asymmetry = np.abs(om + np.swapaxes(om, -1, -2)).max(axis=(-2, -1))
+        assert (asymmetry <= 10 * ORTH_TOL[dtype] * np.abs(om).max(axis=(-2, -1))).all(), asymmetry
+
+
 def _jac_test_fn(F):
     U, s, V = svd(F)
     return jnp.concatenate([U.ravel(), s**2, V.ravel(), (U @ jnp.diag(s) @ V.T).ravel()])
