@@ -24,6 +24,7 @@ from .constitutive import Newtonian as Newtonian
 from .constitutive import Plasticine as Plasticine
 from .constitutive import Sand as Sand
 from .constitutive import Viscoplastic as Viscoplastic
+from .constitutive import polar_rotation as polar_rotation
 from .constitutive import svd as svd
 from .cpic import CollisionField as CollisionField
 from .cpic import build_collision_field as build_collision_field

@@ -13,6 +13,7 @@ from jaxmpm.constitutive.models import _hencky
 
 svd_mod = importlib.import_module("jaxmpm.constitutive.svd")
 svd = svd_mod.svd
+polar_rotation = svd_mod.polar_rotation
 
 MU, LAM = 1.3, 0.7
 # Reconstruction tolerance (relative, Frobenius): accuracy target plus the tie-break.
@@ -153,6 +154,10 @@ def test_rejects_bad_input():
         svd(jnp.zeros((4, 4)))
     with pytest.raises(TypeError):
         svd(jnp.zeros((3, 3), dtype=jnp.int32))
+    with pytest.raises(ValueError):
+        polar_rotation(jnp.zeros((4, 4)))
+    with pytest.raises(TypeError):
+        polar_rotation(jnp.zeros((3, 3), dtype=jnp.int32))
 
 
 # ---------------------------------------------------------------------------------
@@ -205,6 +210,53 @@ def test_rotation_tangents_stay_rotations_at_ties(dim, dtype):
         assert np.isfinite(om).all()
         asymmetry = np.abs(om + np.swapaxes(om, -1, -2)).max(axis=(-2, -1))
         assert (asymmetry <= 10 * ORTH_TOL[dtype] * np.abs(om).max(axis=(-2, -1))).all(), asymmetry
+
+
+def _rotation_via_svd(F):
+    U, _, V = svd(F)
+    return svd_mod.matmul(U, V.mT)
+
+
+def test_polar_rotation_is_svds_rotation_with_its_derivatives(dim, dtype):
+    """:func:`polar_rotation`'s own rule (``dR = U (Omega_U - Omega_V) V^T``) agrees with
+    differentiating ``U V^T`` through :func:`svd`: same value, same tangents (forward mode) and
+    cotangents (reverse mode, the rule transposed), on separated and on awkward matrices; its
+    tangents are rotation tangents (``R^T dR`` antisymmetric) and finite down to F = 0."""
+    rng = np.random.default_rng(9)
+    F = np.concatenate([_random_separated(rng, 16, dim), _special(dim, rng)]).astype(dtype)
+    dF = rng.normal(size=F.shape).astype(dtype)
+    W = rng.normal(size=F.shape).astype(dtype)
+
+    @jax.jit
+    def run(F, dF):
+        out = []
+        for rot in (polar_rotation, _rotation_via_svd):
+            R, dR = jax.jvp(rot, (F,), (dF,))
+            out.append((R, dR, jax.grad(lambda F: jnp.sum(W * rot(F)))(F)))
+        return out
+
+    (R, dR, g), (R_ref, dR_ref, g_ref) = (tuple(np.asarray(x, np.float64) for x in t) for t in run(F, dF))
+    np.testing.assert_array_equal(R, R_ref)
+    separated = slice(0, 16)  # at ties both rules are finite but huge, and round apart
+    tol = 10 * ORTH_TOL[dtype]
+    for mine, ref in ((dR, dR_ref), (g, g_ref)):
+        np.testing.assert_allclose(mine[separated], ref[separated], rtol=0,
+                                   atol=tol * np.abs(ref[separated]).max())
+    om = np.swapaxes(R, -1, -2) @ dR
+    assert np.isfinite(om).all() and np.isfinite(g).all()
+    asymmetry = np.abs(om + np.swapaxes(om, -1, -2)).max(axis=(-2, -1))
+    assert (asymmetry <= tol * np.abs(om).max(axis=(-2, -1))).all(), asymmetry
+
+
+@pytest.mark.x64
+def test_polar_rotation_jvp_matches_finite_differences(dim):
+    rng = np.random.default_rng(10)
+    F = _random_separated(rng, 16, dim)
+    dF = rng.normal(size=F.shape)
+    h = 1e-6
+    dR = np.asarray(jax.jvp(polar_rotation, (F,), (dF,))[1])
+    fd = (np.asarray(polar_rotation(F + h * dF)) - np.asarray(polar_rotation(F - h * dF))) / (2 * h)
+    np.testing.assert_allclose(dR, fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
 
 
 def _jac_test_fn(F):

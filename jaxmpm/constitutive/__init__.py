@@ -9,4 +9,5 @@ from .models import Newtonian as Newtonian
 from .models import Plasticine as Plasticine
 from .models import Sand as Sand
 from .models import Viscoplastic as Viscoplastic
+from .svd import polar_rotation as polar_rotation
 from .svd import svd as svd

@@ -25,7 +25,7 @@ from .base import (
     matmul,
     safe_norm,
 )
-from .svd import svd
+from .svd import polar_rotation, svd
 
 _SQRT_2_3 = math.sqrt(2.0 / 3.0)
 
@@ -187,8 +187,7 @@ class Corotated(Material):
 
     def kirchhoff(self, F, C, aux, params):
         mu, lam = lame_from_young(params["E"], params["nu"])
-        U, _, V = svd(F)
-        R = matmul(U, V.mT)
+        R = polar_rotation(F)
         J = det(F)[:, None, None]
         eye = jnp.eye(F.shape[-1], dtype=F.dtype)
         return 2.0 * mu * matmul(F - R, F.mT) + lam * (J - 1.0) * J * eye
