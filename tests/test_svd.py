@@ -154,9 +154,9 @@ def test_rejects_bad_input():
         svd(jnp.zeros((4, 4)))
     with pytest.raises(TypeError):
         svd(jnp.zeros((3, 3), dtype=jnp.int32))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="polar_rotation expects an array of shape"):
         polar_rotation(jnp.zeros((4, 4)))
-    with pytest.raises(TypeError):
+    with pytest.raises(TypeError, match="polar_rotation expects a real floating-point array"):
         polar_rotation(jnp.zeros((3, 3), dtype=jnp.int32))
 
 

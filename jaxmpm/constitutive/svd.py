@@ -399,17 +399,17 @@ def svd(
     finite everywhere, including at repeated singular values.
     """
     F = jnp.asarray(F)
-    _check_input(F)
+    _check_input(F, "svd")
     return _svd(F)
 
 
-def _check_input(F: Array) -> None:
+def _check_input(F: Array, name: str) -> None:
     if F.ndim < 2 or F.shape[-1] != F.shape[-2] or F.shape[-1] not in (2, 3):
         raise ValueError(
-            f"svd expects an array of shape (..., D, D) with D in {{2, 3}}, got {F.shape}"
+            f"{name} expects an array of shape (..., D, D) with D in {{2, 3}}, got {F.shape}"
         )
     if not jnp.issubdtype(F.dtype, jnp.floating):
-        raise TypeError(f"svd expects a real floating-point array, got dtype {F.dtype}")
+        raise TypeError(f"{name} expects a real floating-point array, got dtype {F.dtype}")
 
 
 def polar_rotation(F: Float[Array, "*batch d d"]) -> Float[Array, "*batch d d"]:
@@ -422,5 +422,5 @@ def polar_rotation(F: Float[Array, "*batch d d"]) -> Float[Array, "*batch d d"]:
     differentiating ``U`` and ``V`` apart), finite at repeated singular values as :func:`svd`'s.
     """
     F = jnp.asarray(F)
-    _check_input(F)
+    _check_input(F, "polar_rotation")
     return _polar_rotation(F)
