@@ -7,13 +7,15 @@ in docs/benchmarks.md). ``lax.optimization_barrier`` is expanded away before fus
 A conditional is a fusion boundary: its operands and its output are materialised once.
 JAX differentiates, batches and transposes both helpers as conditionals: ``materialize`` is
 the identity, and ``compute_once`` is linear wherever its function is (a tangent gather).
+
+:func:`sum_last` keeps a sum over a small last axis out of XLA's reductions altogether.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool
+from jaxtyping import Array, Bool, Float
 
 
 def always_true(x: Array) -> Bool[Array, ""]:
@@ -38,3 +40,15 @@ def compute_once(fn, *args, token: Bool[Array, ""]):
     return jax.lax.cond(
         token, lambda a: fn(*a), lambda a: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), args
     )
+
+
+def sum_last(x: Float[Array, "... D"], keepdims: bool = False) -> Float[Array, "..."]:
+    """The sum over the last axis (a small one: D coordinates or principal values), written as
+    D - 1 elementwise adds that fuse with their producers and consumers. XLA's CPU backend runs
+    a reduction over a 2- or 3-wide axis as a slow loop (4x slower in the CPIC gather), and
+    hands some to its YNNPACK fusions, slower still (in forward-mode Jacobians of the Hencky
+    materials, 40 % of the step; docs/benchmarks.md, session 27)."""
+    total = x[..., 0]
+    for i in range(1, x.shape[-1]):
+        total = total + x[..., i]
+    return total[..., None] if keepdims else total

@@ -99,6 +99,29 @@ def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_diff
 
 
 @pytest.mark.x64
+def test_sum_last_matches_jnp_sum(dim):
+    """:func:`jaxmpm.fusion.sum_last` (a sum over the last axis written as adds) equals
+    ``jnp.sum(x, axis=-1)`` in value, with ``keepdims``, and in forward and reverse mode."""
+    from jaxmpm.fusion import sum_last
+
+    x = jax.random.normal(jax.random.PRNGKey(11), (5, 4, dim), jnp.float64)
+    dx = jax.random.normal(jax.random.PRNGKey(12), x.shape, jnp.float64)
+    for keepdims in (False, True):
+        def mine(x):
+            return sum_last(x, keepdims=keepdims)
+
+        def plain(x):
+            return jnp.sum(x, axis=-1, keepdims=keepdims)
+
+        (a, da), (b, db) = (jax.jvp(f, (x,), (dx,)) for f in (mine, plain))
+        np.testing.assert_allclose(a, b, rtol=1e-15)
+        np.testing.assert_allclose(da, db, rtol=1e-15)
+        assert a.shape == b.shape
+        cot = jax.random.normal(jax.random.PRNGKey(13), b.shape, jnp.float64)
+        np.testing.assert_array_equal(jax.vjp(mine, x)[1](cot)[0], jax.vjp(plain, x)[1](cot)[0])
+
+
+@pytest.mark.x64
 def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
     """:func:`jaxmpm.constitutive.base.matmul` (a primitive: elementwise value and tangents,
     dot-based transpose): its value, Jacobian-vector products batched over directions,

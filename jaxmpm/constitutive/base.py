@@ -13,6 +13,7 @@ from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Float
 
 from ..errors import SceneError
+from ..fusion import sum_last
 from ..parameters import Parameter
 
 Params = dict[str, Float[Array, ""]]
@@ -23,9 +24,9 @@ SIGMA_MIN = 0.05
 NORM_EPS = 1e-8
 
 
-def safe_norm(x: Float[Array, "... D"], axis: int = -1, keepdims: bool = False) -> Float[Array, "..."]:
-    """``sqrt(x·x + 1e-8)``: finite value and gradient at ``x = 0``."""
-    return jnp.sqrt(jnp.sum(x * x, axis=axis, keepdims=keepdims) + NORM_EPS)
+def safe_norm(x: Float[Array, "... D"], keepdims: bool = False) -> Float[Array, "..."]:
+    """``sqrt(x·x + 1e-8)`` over the last axis: finite value and gradient at ``x = 0``."""
+    return jnp.sqrt(sum_last(x * x, keepdims=keepdims) + NORM_EPS)
 
 
 def det(A: Float[Array, "... D D"]) -> Float[Array, "..."]:

@@ -15,6 +15,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..fusion import sum_last
 from ..parameters import ANGLE, NON_NEGATIVE, POISSON, POSITIVE, Linear, Log10, Parameter, TanhBounded
 from .base import (
     SIGMA_MIN,
@@ -59,12 +60,12 @@ def _from_hencky(U, eps, V):
 def _principal_kirchhoff(U, eps, mu, lam):
     """StVK in Hencky strain from the left singular vectors and principal Hencky strains:
     ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
-    diag = 2.0 * mu * eps + lam * jnp.sum(eps, axis=-1, keepdims=True)
+    diag = 2.0 * mu * eps + lam * sum_last(eps, keepdims=True)
     return matmul(U * diag[:, None, :], U.mT)
 
 
 def _deviatoric(eps):
-    return eps - jnp.mean(eps, axis=-1, keepdims=True)
+    return eps - sum_last(eps, keepdims=True) / eps.shape[-1]
 
 
 def _bulk_lame(mu, kappa, dim):
@@ -85,10 +86,10 @@ def viscoplastic_projection(eps, mu, yield_stress, eta, dt):
     eps_hat = _deviatoric(eps)
     s_norm = 2.0 * mu * safe_norm(eps_hat, keepdims=True)
     excess = s_norm - _SQRT_2_3 * yield_stress
-    mu_hat = mu * jnp.sum(jnp.exp(2.0 * eps), axis=-1, keepdims=True) / dim
+    mu_hat = mu * sum_last(jnp.exp(2.0 * eps), keepdims=True) / dim
     new_norm = s_norm - excess / (1.0 + eta / (2.0 * mu_hat * dt))
     scale = jnp.where(excess > 0, new_norm / s_norm, 1.0)
-    return scale * eps_hat + jnp.mean(eps, axis=-1, keepdims=True)
+    return scale * eps_hat + sum_last(eps, keepdims=True) / dim
 
 
 def drucker_prager_projection(eps, mu, lam, friction_angle, cohesion=0.0):
@@ -106,7 +107,7 @@ def drucker_prager_projection(eps, mu, lam, friction_angle, cohesion=0.0):
     shift = cohesion / (2.0 * mu + dim * lam)
     eps = eps - shift
     alpha = drucker_prager_alpha(friction_angle, dim)
-    trace = jnp.sum(eps, axis=-1, keepdims=True)
+    trace = sum_last(eps, keepdims=True)
     eps_hat = _deviatoric(eps)
     eps_hat_norm = safe_norm(eps_hat, keepdims=True)
     dgamma = eps_hat_norm + (dim * lam + 2.0 * mu) / (2.0 * mu) * trace * alpha
