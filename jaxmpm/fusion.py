@@ -47,7 +47,7 @@ def sum_last(x: Float[Array, "... D"], keepdims: bool = False) -> Float[Array, "
     D - 1 elementwise adds that fuse with their producers and consumers. XLA's CPU backend runs
     a reduction over a 2- or 3-wide axis as a slow loop (4x slower in the CPIC gather), and
     hands some to its YNNPACK fusions, slower still (in forward-mode Jacobians of the Hencky
-    materials, 40 % of the step; docs/benchmarks.md, session 27)."""
+    materials, a fifth of the step; docs/benchmarks.md, session 27)."""
     total = x[..., 0]
     for i in range(1, x.shape[-1]):
         total = total + x[..., i]
