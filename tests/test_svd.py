@@ -14,6 +14,7 @@ from jaxmpm.constitutive.models import _hencky
 svd_mod = importlib.import_module("jaxmpm.constitutive.svd")
 svd = svd_mod.svd
 polar_rotation = svd_mod.polar_rotation
+spectral_maps = svd_mod.spectral_maps
 
 MU, LAM = 1.3, 0.7
 # Reconstruction tolerance (relative, Frobenius): accuracy target plus the tie-break.
@@ -158,6 +159,8 @@ def test_rejects_bad_input():
         polar_rotation(jnp.zeros((4, 4)))
     with pytest.raises(TypeError, match="polar_rotation expects a real floating-point array"):
         polar_rotation(jnp.zeros((3, 3), dtype=jnp.int32))
+    with pytest.raises(ValueError, match="spectral_maps expects an array of shape"):
+        spectral_maps(_principal, jnp.zeros((3, 2)), {})
 
 
 # ---------------------------------------------------------------------------------
@@ -257,6 +260,80 @@ def test_polar_rotation_jvp_matches_finite_differences(dim):
     dR = np.asarray(jax.jvp(polar_rotation, (F,), (dF,))[1])
     fd = (np.asarray(polar_rotation(F + h * dF)) - np.asarray(polar_rotation(F - h * dF))) / (2 * h)
     np.testing.assert_allclose(dR, fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
+
+
+def _principal(sigma, p):
+    """Principal values of the spectral-map tests: coupled across sigma, and through ``p``."""
+    eps = jnp.log(jnp.maximum(jnp.abs(sigma), 0.05))
+    return jnp.exp(p["s"] * eps), p["m"] * eps + p["l"] * jnp.sum(eps, axis=-1, keepdims=True)
+
+
+def _spectral_via_svd(F, p):
+    U, sigma, V = svd(F)
+    a, b = _principal(sigma, p)
+    return svd_mod.matmul(U * a[..., None, :], V.mT), svd_mod.matmul(U * b[..., None, :], U.mT)
+
+
+def test_spectral_maps_match_the_svd_path_with_derivatives(dim, dtype):
+    """:func:`spectral_maps`' own rule (tangents in the singular bases, no ``dU``/``dV``) agrees
+    with composing ``U diag(a) V^T`` and ``U diag(b) U^T`` from :func:`svd`: same values, same
+    tangents and cotangents with respect to F and to the parameters of the principal-value
+    function, on separated matrices; finite on the awkward ones down to F = 0."""
+    rng = np.random.default_rng(11)
+    F = np.concatenate([_random_separated(rng, 16, dim), _special(dim, rng)]).astype(dtype)
+    dF = rng.normal(size=F.shape).astype(dtype)
+    p = {k: jnp.asarray(v, dtype) for k, v in (("s", 0.8), ("m", 2.0), ("l", 0.5))}
+    dp = {k: jnp.asarray(v, dtype) for k, v in (("s", 0.3), ("m", -1.0), ("l", 0.7))}
+    W = [rng.normal(size=F.shape).astype(dtype) for _ in range(2)]
+
+    @jax.jit
+    def run(F, dF, p, dp):
+        out = []
+        for fn in (lambda F, p: spectral_maps(_principal, F, p), _spectral_via_svd):
+            values, tangents = jax.jvp(fn, (F, p), (dF, dp))
+            grads = jax.grad(lambda F, p: sum(jnp.sum(w * x) for w, x in zip(W, fn(F, p))), argnums=(0, 1))(F, p)
+            out.append((values, tangents, grads))
+        return out
+
+    (values, tangents, grads), (values_ref, tangents_ref, grads_ref) = run(F, dF, p, dp)
+    for mine, ref in zip(values, values_ref):
+        np.testing.assert_array_equal(mine, ref)
+    separated = slice(0, 16)
+    tol = 20 * ORTH_TOL[dtype]
+    for mine, ref in zip(tangents, tangents_ref):
+        mine, ref = np.asarray(mine, np.float64)[separated], np.asarray(ref, np.float64)[separated]
+        np.testing.assert_allclose(mine, ref, rtol=0, atol=tol * np.abs(ref).max())
+    gF, gp = grads
+    gF_ref, gp_ref = grads_ref
+    gF, gF_ref = np.asarray(gF, np.float64), np.asarray(gF_ref, np.float64)
+    np.testing.assert_allclose(gF[separated], gF_ref[separated], rtol=0, atol=tol * np.abs(gF_ref[separated]).max())
+    assert all(np.isfinite(np.asarray(t)).all() for t in tangents) and np.isfinite(gF).all()
+    # the parameters' cotangents sum over all matrices, awkward ones included: compare the
+    # separated ones alone
+    gp_sep = jax.grad(lambda p: sum(jnp.sum(w[separated] * x) for w, x in zip(W, spectral_maps(_principal, F[separated], p))))(p)
+    gp_sep_ref = jax.grad(lambda p: sum(jnp.sum(w[separated] * x) for w, x in zip(W, _spectral_via_svd(F[separated], p))))(p)
+    for k in p:
+        np.testing.assert_allclose(float(gp_sep[k]), float(gp_sep_ref[k]), rtol=tol * 10)
+
+
+@pytest.mark.x64
+def test_spectral_maps_jvp_matches_finite_differences(dim):
+    rng = np.random.default_rng(12)
+    F = _random_separated(rng, 16, dim)
+    dF = rng.normal(size=F.shape)
+    p = {"s": jnp.asarray(0.8), "m": jnp.asarray(2.0), "l": jnp.asarray(0.5)}
+    dp = {"s": jnp.asarray(0.3), "m": jnp.asarray(-1.0), "l": jnp.asarray(0.7)}
+    h = 1e-6
+
+    def fn(F, p):
+        return spectral_maps(_principal, F, p)
+
+    tangents = jax.jvp(fn, (F, p), (dF, dp))[1]
+    plus = fn(F + h * dF, jax.tree_util.tree_map(lambda a, b: a + h * b, p, dp))
+    minus = fn(F - h * dF, jax.tree_util.tree_map(lambda a, b: a - h * b, p, dp))
+    for t, a, b in zip(tangents, plus, minus):
+        fd = (np.asarray(a) - np.asarray(b)) / (2 * h)
+        np.testing.assert_allclose(np.asarray(t), fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
 
 
 def _jac_test_fn(F):

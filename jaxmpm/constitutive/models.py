@@ -26,7 +26,7 @@ from .base import (
     matmul,
     safe_norm,
 )
-from .svd import polar_rotation, svd
+from .svd import polar_rotation, spectral_maps, svd
 
 _SQRT_2_3 = math.sqrt(2.0 / 3.0)
 
@@ -57,11 +57,15 @@ def _from_hencky(U, eps, V):
     return matmul(U * jnp.exp(eps)[:, None, :], V.mT)
 
 
+def _principal_stress(eps, mu, lam):
+    """StVK in Hencky strain: the principal Kirchhoff stresses ``2 mu eps + lam tr eps``."""
+    return 2.0 * mu * eps + lam * sum_last(eps, keepdims=True)
+
+
 def _principal_kirchhoff(U, eps, mu, lam):
-    """StVK in Hencky strain from the left singular vectors and principal Hencky strains:
-    ``tau = U diag(2 mu eps + lam tr eps) U^T``."""
-    diag = 2.0 * mu * eps + lam * sum_last(eps, keepdims=True)
-    return matmul(U * diag[:, None, :], U.mT)
+    """``tau = U diag(2 mu eps + lam tr eps) U^T`` from the left singular vectors and the
+    principal Hencky strains."""
+    return matmul(U * _principal_stress(eps, mu, lam)[:, None, :], U.mT)
 
 
 def _deviatoric(eps):
@@ -123,7 +127,8 @@ class HenckyPlastic(Material):
     ``F = U exp(project(log sigma)) V^T`` and the stress
     ``tau = U diag(2 mu eps + lam tr eps) U^T``. :meth:`update` does both from **one** SVD
     of ``F_trial`` (the projected ``F``'s SVD is ``U, exp(eps_new), V``), instead of a second
-    SVD of the projected ``F`` for the stress.
+    SVD of the projected ``F`` for the stress, with :func:`~jaxmpm.constitutive.svd.spectral_maps`,
+    whose derivative rule never forms the singular vectors' own tangents.
     """
 
     @abc.abstractmethod
@@ -143,12 +148,14 @@ class HenckyPlastic(Material):
         return _principal_kirchhoff(U, eps, *self.lame(params, F.shape[-1]))
 
     def update(self, F_trial, C, aux, params, dt):
-        U, eps, V = _hencky(F_trial)
-        eps = self.project(eps, params, dt)
-        # the stress sees the strains clamped as an SVD of the projected F would clamp them
-        eps_stress = jnp.maximum(eps, math.log(SIGMA_MIN))
-        tau = _principal_kirchhoff(U, eps_stress, *self.lame(params, F_trial.shape[-1]))
-        return _from_hencky(U, eps, V), aux, tau
+        def principal(sigma, params):
+            eps = self.project(jnp.log(jnp.maximum(sigma, SIGMA_MIN)), params, dt)
+            # the stress sees the strains clamped as an SVD of the projected F would clamp them
+            eps_stress = jnp.maximum(eps, math.log(SIGMA_MIN))
+            return jnp.exp(eps), _principal_stress(eps_stress, *self.lame(params, sigma.shape[-1]))
+
+        F, tau = spectral_maps(principal, F_trial, params)
+        return F, aux, tau
 
 
 class Elastic(Material):
