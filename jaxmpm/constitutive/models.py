@@ -47,10 +47,14 @@ PLASTIC_VISCOSITY = Parameter("eta", "Pa s", NON_NEGATIVE, Log10(), 0.05, 1.0, "
 FRICTION_ANGLE = Parameter("friction_angle", "deg", ANGLE, Linear(), 1.0, 10.0, "Drucker-Prager friction angle")
 
 
+def _hencky_strain(sigma):
+    """Principal Hencky strains ``log sigma``, the singular values clamped to ``SIGMA_MIN``."""
+    return jnp.log(jnp.maximum(sigma, SIGMA_MIN))
+
+
 def _hencky(F):
     U, sigma, V = svd(F)
-    eps = jnp.log(jnp.maximum(sigma, SIGMA_MIN))
-    return U, eps, V
+    return U, _hencky_strain(sigma), V
 
 
 def _from_hencky(U, eps, V):
@@ -149,7 +153,7 @@ class HenckyPlastic(Material):
 
     def update(self, F_trial, C, aux, params, dt):
         def principal(sigma, params):
-            eps = self.project(jnp.log(jnp.maximum(sigma, SIGMA_MIN)), params, dt)
+            eps = self.project(_hencky_strain(sigma), params, dt)
             # the stress sees the strains clamped as an SVD of the projected F would clamp them
             eps_stress = jnp.maximum(eps, math.log(SIGMA_MIN))
             return jnp.exp(eps), _principal_stress(eps_stress, *self.lame(params, sigma.shape[-1]))
