@@ -255,11 +255,18 @@ def test_polar_rotation_is_svds_rotation_with_its_derivatives(dim, dtype):
 def test_polar_rotation_jvp_matches_finite_differences(dim):
     rng = np.random.default_rng(10)
     F = _random_separated(rng, 16, dim)
-    dF = rng.normal(size=F.shape)
-    h = 1e-6
-    dR = np.asarray(jax.jvp(polar_rotation, (F,), (dF,))[1])
-    fd = (np.asarray(polar_rotation(F + h * dF)) - np.asarray(polar_rotation(F - h * dF))) / (2 * h)
-    np.testing.assert_allclose(dR, fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
+    _assert_jvp_matches_central_differences(polar_rotation, (F,), (rng.normal(size=F.shape),))
+
+
+def _assert_jvp_matches_central_differences(fn, primals, tangents, h=1e-6):
+    """``jax.jvp(fn)`` against ``(fn(x + h t) - fn(x - h t)) / 2h``, every output leaf."""
+    def shifted(sign):
+        return fn(*jax.tree_util.tree_map(lambda x, t: x + sign * h * t, primals, tangents))
+
+    out = jax.jvp(fn, primals, tangents)[1]
+    for t, a, b in zip(*(jax.tree_util.tree_leaves(o) for o in (out, shifted(1), shifted(-1)))):
+        fd = (np.asarray(a) - np.asarray(b)) / (2 * h)
+        np.testing.assert_allclose(np.asarray(t), fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
 
 
 def _principal(sigma, p):
@@ -323,17 +330,7 @@ def test_spectral_maps_jvp_matches_finite_differences(dim):
     dF = rng.normal(size=F.shape)
     p = {"s": jnp.asarray(0.8), "m": jnp.asarray(2.0), "l": jnp.asarray(0.5)}
     dp = {"s": jnp.asarray(0.3), "m": jnp.asarray(-1.0), "l": jnp.asarray(0.7)}
-    h = 1e-6
-
-    def fn(F, p):
-        return spectral_maps(_principal, F, p)
-
-    tangents = jax.jvp(fn, (F, p), (dF, dp))[1]
-    plus = fn(F + h * dF, jax.tree_util.tree_map(lambda a, b: a + h * b, p, dp))
-    minus = fn(F - h * dF, jax.tree_util.tree_map(lambda a, b: a - h * b, p, dp))
-    for t, a, b in zip(tangents, plus, minus):
-        fd = (np.asarray(a) - np.asarray(b)) / (2 * h)
-        np.testing.assert_allclose(np.asarray(t), fd, rtol=0, atol=1e-7 * (1 + np.abs(fd).max()))
+    _assert_jvp_matches_central_differences(lambda F, p: spectral_maps(_principal, F, p), (F, p), (dF, dp))
 
 
 def _jac_test_fn(F):
