@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Bool, Float
 
 
@@ -52,3 +54,62 @@ def sum_last(x: Float[Array, "... D"], keepdims: bool = False) -> Float[Array, "
     for i in range(1, x.shape[-1]):
         total = total + x[..., i]
     return total[..., None] if keepdims else total
+
+
+def scale_rows(w: Float[Array, "... N"], x: Float[Array, "... N *T"]) -> Float[Array, "... N *T"]:
+    """``w * x`` with ``w`` broadcast over ``x``'s trailing axes ``T``: row ``n`` of ``x``
+    scaled by ``w[n]`` (P2G's weighted rows, momentum over mass). Leading axes broadcast.
+
+    A JAX primitive, bilinear, with its own transpose: reverse mode's cotangent of ``w`` is a
+    sum over ``T`` written as adds. JAX's rule for a broadcast ``w`` gives a reduction over
+    ``T``, which XLA's CPU backend hands to YNNPACK fusions: a third of P2G's backward pass
+    and most of the grid update's (docs/benchmarks.md, session 28). The value and the tangent
+    are the broadcast products (forward mode as fast as before)."""
+    dtype = jnp.result_type(w, x)
+    return _scale_rows_p.bind(jnp.asarray(w, dtype), jnp.asarray(x, dtype))
+
+
+def _trailing(w, x) -> int:
+    """How many axes of ``x`` follow ``w``'s (``T``)."""
+    return x.ndim - w.ndim
+
+
+def _scale_rows_impl(w, x):
+    return w.reshape(w.shape + (1,) * _trailing(w, x)) * x
+
+
+def _scale_rows_abstract(w, x):
+    t = _trailing(w, x)
+    lead = jnp.broadcast_shapes(w.shape, x.shape[: x.ndim - t])
+    return jax.core.ShapedArray(lead + x.shape[x.ndim - t:], x.dtype)
+
+
+def _scale_rows_transpose_w(ct, w, x):
+    t = _trailing(w.aval, x)
+    flat = (ct * x).reshape(ct.shape[: ct.ndim - t] + (-1,))
+    return _sum_to_shape(sum_last(flat), w.aval.shape)
+
+
+def _scale_rows_transpose_x(ct, w, x):
+    return _sum_to_shape(scale_rows(w, ct), x.aval.shape)
+
+
+def _sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
+    """``g`` summed over the leading axes that broadcasting added or stretched in ``shape``."""
+    g = g.sum(axis=tuple(range(g.ndim - len(shape))))
+    stretched = tuple(i for i, (n, m) in enumerate(zip(shape, g.shape)) if n == 1 and m != 1)
+    return g.sum(axis=stretched, keepdims=True) if stretched else g
+
+
+def _scale_rows_batch(args, dims):
+    size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+    w, x = (a[None] if d is None else batching.bdim_at_front(a, d, size) for a, d in zip(args, dims))
+    return _scale_rows_p.bind(w, x), 0
+
+
+_scale_rows_p = Primitive("jaxmpm_scale_rows")
+_scale_rows_p.def_impl(_scale_rows_impl)
+_scale_rows_p.def_abstract_eval(_scale_rows_abstract)
+mlir.register_lowering(_scale_rows_p, mlir.lower_fun(_scale_rows_impl, multiple_results=False))
+ad.defbilinear(_scale_rows_p, _scale_rows_transpose_w, _scale_rows_transpose_x)
+batching.primitive_batchers[_scale_rows_p] = _scale_rows_batch

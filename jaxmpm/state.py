@@ -15,7 +15,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Bool, Float, Int
 
-from .fusion import always_true, compute_once, materialize
+from .fusion import always_true, compute_once, materialize, scale_rows
 
 #: Number of padding cells added around the scene's domain on every side, so that the
 #: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
@@ -428,8 +428,8 @@ def _stencil_moments_jvp(primals, tangents):
     by_axis = materialize(by_axis, always_true(st.base))
     dv, dM = _stencil_moments(offsets, weights, dvalues)
     for dfx, (P, Q) in zip(dst.fx, by_axis):
-        dv = dv + dfx[:, None] * P
-        dM = dM + dfx[:, None, None] * Q
+        dv = dv + scale_rows(dfx, P)
+        dM = dM + scale_rows(dfx, Q)
     # stored: G2P's affine-matrix tangent reads dv for each of its D x D entries
     return out, materialize((dv, dM), always_true(st.base))
 

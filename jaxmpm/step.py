@@ -29,7 +29,7 @@ from . import cpic
 from . import extensions as _ext
 from .colliders import Plane, project_velocity
 from .constitutive.base import matmul
-from .fusion import always_true, compute_once
+from .fusion import always_true, compute_once, scale_rows
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
@@ -114,7 +114,7 @@ def gather_contact(model: Model, st: Stencil, state: State) -> cpic.Contact | No
 
 def affine_momentum(grid: Grid, state: State, tau: Float[Array, "N D D"], dt: float) -> Float[Array, "N D D"]:
     """MLS fused stress + APIC matrix ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``."""
-    return (-dt * 4.0 / grid.dx**2) * state.vol0[:, None, None] * tau + state.mass[:, None, None] * state.C
+    return scale_rows((-dt * 4.0 / grid.dx**2) * state.vol0, tau) + scale_rows(state.mass, state.C)
 
 
 def p2g(
@@ -142,8 +142,8 @@ def p2g(
         # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
         affine = affine_momentum(grid, state, tau, dt)
         columns = [grid.dx * affine[:, :, d] for d in range(dim)]
-        affine_fx = sum(affine[:, :, d] * fx[d][:, None] for d in range(dim))
-        return columns, state.mass[:, None] * state.v - grid.dx * affine_fx
+        affine_fx = sum(scale_rows(fx[d], affine[:, :, d]) for d in range(dim))
+        return columns, scale_rows(state.mass, state.v) - grid.dx * affine_fx
 
     # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
@@ -158,7 +158,7 @@ def p2g(
         for d, od in enumerate(offset):
             if od:
                 momentum = momentum + od * columns[d]
-        rows.append(weight[:, None] * jnp.concatenate([state.mass[:, None], momentum], axis=-1))
+        rows.append(scale_rows(weight, jnp.concatenate([state.mass[:, None], momentum], axis=-1)))
     packed = scatter_stencil(grid, st, rows)
     return packed[:, 0], packed[:, 1:]
 
@@ -231,7 +231,7 @@ def grid_update(
     # one reciprocal per node, zero on empty nodes (3x cheaper forward and backward than
     # dividing each component under a mask, measured)
     inverse_mass = jnp.where(occupied, 1.0 / jnp.where(occupied, total, 1.0), 0.0)
-    v = momentum * inverse_mass[:, None]
+    v = scale_rows(inverse_mass, momentum)
     if rigid is not None:
         material_share = (mass * inverse_mass)[:, None]
     v = v + material_share * gravity
@@ -317,7 +317,7 @@ def g2p(
     incompatible = None if ghost is None else ghost.contact.incompatible_mask()
     v, moments = stencil_moments(st, incompatible, values)
     fx = jnp.stack(st.fx, axis=-1)
-    C = (4.0 / grid.dx) * (moments - v[:, :, None] * fx[:, None, :])
+    C = (4.0 / grid.dx) * (moments - matmul(v[:, :, None], fx[:, None, :]))
     for c in range(0 if ghost is None else len(ghost.kinds)):
         P = ghost.projected(c, grid.dx)
         v = v + ghost.weight[c][:, None] * P

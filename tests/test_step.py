@@ -122,6 +122,39 @@ def test_sum_last_matches_jnp_sum(dim):
 
 
 @pytest.mark.x64
+@pytest.mark.parametrize("trailing", [(), (4,), (3, 3)])
+def test_scale_rows_matches_the_broadcast_product(dim, trailing):
+    """:func:`jaxmpm.fusion.scale_rows` (a primitive whose transpose sums a row's products
+    with adds): its value, batched Jacobian-vector products, vector-Jacobian products, second
+    derivatives and batches with one operand shared equal the plain broadcast product's."""
+    from jaxmpm.fusion import scale_rows
+
+    def plain(w, x):
+        return w.reshape(w.shape + (1,) * len(trailing)) * x
+
+    keys = jax.random.split(jax.random.PRNGKey(14), 6)
+    n = 5 * dim
+    w, dw = jax.random.normal(keys[0], (n,), jnp.float64), jax.random.normal(keys[1], (3, n), jnp.float64)
+    x, dx = (jax.random.normal(k, s + (n, *trailing), jnp.float64) for k, s in ((keys[2], ()), (keys[3], (3,))))
+
+    def close(a, b):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-15)
+
+    np.testing.assert_array_equal(jax.jit(scale_rows)(w, x), plain(w, x))
+    close(*(jax.vmap(lambda s, t, f=f: jax.jvp(f, (w, x), (s, t))[1])(dw, dx) for f in (scale_rows, plain)))
+    cot = jax.random.normal(keys[4], x.shape, jnp.float64)
+    for a, b in zip(*(jax.vjp(f, w, x)[1](cot) for f in (scale_rows, plain))):
+        close(a, b)
+    loss = [lambda a, b, f=f: jnp.sum(jnp.sin(f(a, b)) * cot) for f in (scale_rows, plain)]
+    for a, b in zip(*(jax.hessian(f, argnums=(0, 1))(w, x) for f in loss)):
+        for u, v in zip(a, b):
+            close(u, v)
+    # the grad of a vmap (the transpose batched), and one operand shared by a batch
+    close(*(jax.grad(lambda a, f=f: jnp.sum(jax.vmap(f, (None, 0))(a, dx) * cot))(w) for f in (scale_rows, plain)))
+    close(*(jax.grad(lambda b, f=f: jnp.sum(jax.vmap(f, (0, None))(dw, b) * cot))(x) for f in (scale_rows, plain)))
+
+
+@pytest.mark.x64
 def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
     """:func:`jaxmpm.constitutive.base.matmul` (a primitive: elementwise value and tangents,
     dot-based transpose): its value, Jacobian-vector products batched over directions,
