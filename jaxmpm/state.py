@@ -421,7 +421,9 @@ def _stencil_moments_jvp(primals, tangents):
     st, incompatible, values = primals
     dst, _, dvalues = tangents
     offsets = stencil_offsets(st.dim)
-    weights = stencil_weights(st, incompatible)
+    # stored once: the tangent's sums (and in reverse mode their transposes, one per offset)
+    # would otherwise each re-derive the weights from the positions for every entry they write
+    weights = compute_once(stencil_weights, st, incompatible, token=always_true(st.base))
     out = _stencil_moments(offsets, weights, values)
     # d/dfx_e of (v, M), e = 0 .. D-1: primal only
     by_axis = [_stencil_moments(offsets, p, values) for p in _weight_partials(st, offsets, incompatible)]
