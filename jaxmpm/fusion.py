@@ -87,14 +87,14 @@ def _scale_rows_abstract(w, x):
 def _scale_rows_transpose_w(ct, w, x):
     t = _trailing(w.aval, x)
     flat = (ct * x).reshape(ct.shape[: ct.ndim - t] + (-1,))
-    return _sum_to_shape(sum_last(flat), w.aval.shape)
+    return sum_to_shape(sum_last(flat), w.aval.shape)
 
 
 def _scale_rows_transpose_x(ct, w, x):
-    return _sum_to_shape(scale_rows(w, ct), x.aval.shape)
+    return sum_to_shape(scale_rows(w, ct), x.aval.shape)
 
 
-def _sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
+def sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
     """``g`` summed over the leading axes that broadcasting added or stretched in ``shape``."""
     g = g.sum(axis=tuple(range(g.ndim - len(shape))))
     stretched = tuple(i for i, (n, m) in enumerate(zip(shape, g.shape)) if n == 1 and m != 1)

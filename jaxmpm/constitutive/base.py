@@ -13,7 +13,7 @@ from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Float
 
 from ..errors import SceneError
-from ..fusion import sum_last
+from ..fusion import sum_last, sum_to_shape
 from ..parameters import Parameter
 
 Params = dict[str, Float[Array, ""]]
@@ -75,13 +75,6 @@ def _dot(a, b):
     return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
 
 
-def _sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
-    """``g`` summed over the leading dimensions that broadcasting added to ``shape``."""
-    g = g.sum(axis=tuple(range(g.ndim - len(shape))))
-    broadcast = tuple(i for i, (n, m) in enumerate(zip(shape, g.shape)) if n == 1 and m != 1)
-    return g.sum(axis=broadcast, keepdims=True) if broadcast else g
-
-
 def _matmul_batch(args, dims):
     size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
     a, b = (x[None] if d is None else batching.bdim_at_front(x, d, size) for x, d in zip(args, dims))
@@ -95,8 +88,8 @@ _matmul_p.def_abstract_eval(_matmul_abstract)
 mlir.register_lowering(_matmul_p, mlir.lower_fun(_matmul_impl, multiple_results=False))
 ad.defbilinear(
     _matmul_p,
-    lambda ct, a, b: _sum_to_shape(_dot(ct, b.mT), a.aval.shape),
-    lambda ct, a, b: _sum_to_shape(_dot(a.mT, ct), b.aval.shape),
+    lambda ct, a, b: sum_to_shape(_dot(ct, b.mT), a.aval.shape),
+    lambda ct, a, b: sum_to_shape(_dot(a.mT, ct), b.aval.shape),
 )
 batching.primitive_batchers[_matmul_p] = _matmul_batch
 
