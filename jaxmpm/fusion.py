@@ -8,7 +8,8 @@ A conditional is a fusion boundary: its operands and its output are materialised
 JAX differentiates, batches and transposes both helpers as conditionals: ``materialize`` is
 the identity, and ``compute_once`` is linear wherever its function is (a tangent gather).
 
-:func:`sum_last` keeps a sum over a small last axis out of XLA's reductions altogether.
+:func:`sum_last` keeps a sum over a small last axis out of XLA's reductions altogether, and
+:func:`scale_rows` the sums reverse mode makes of a product with a broadcast weight.
 """
 
 from __future__ import annotations
