@@ -767,7 +767,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # (K, K, N) cosines (73 MB at 25k particles in 3D) were stored and read three times.
         cos = [row_dot(nodes.normal, nodes.normal[j][None]) for j in range(w.shape[0])]  # [j][i, n]
         same = [same_face_fraction(c) * w[j][None] for j, c in enumerate(cos)]  # node j's weight on i's face
-        face = _safe_ratio(_sum_list([s * carried[j][None] for j, s in enumerate(same)]), _sum_list(same))
+        face = _safe_ratio(sum(s * carried[j][None] for j, s in enumerate(same)), sum(same))
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
         live = nodes.affine & (w > 0) & jnp.isfinite(key)
@@ -775,20 +775,12 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
         p = _safe_ratio(p, jnp.sum(p, axis=0))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
-        w = w * _sum_list([jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos)])
+        w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
     snrm = jnp.sum(w[..., None] * nodes.normal, axis=0)
     near = sw > 0
     return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
-
-
-def _sum_list(terms):
-    """The sum of a list of arrays, as adds that fuse."""
-    total = terms[0]
-    for t in terms[1:]:
-        total = total + t
-    return total
 
 
 def _safe_ratio(a, b):
