@@ -3,6 +3,7 @@
     pip install xprof                     # reads jax.profiler's traces (not a jaxmpm dependency)
     python benchmarks/profile_step.py [--material corotated] [--particles 25000] [--grid 64]
                                       [--repeats 10] [--json out.json] [--tangents K] [--steps S]
+                                      [--scene cube|bunny]
 
 Traces ``--repeats`` calls of (a) the jitted step and (b) the jitted gradient of a loss of
 one step with respect to the parameters and the state, with :func:`jax.profiler.trace`. Every
@@ -128,6 +129,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", default=None)
     parser.add_argument("--tangents", type=int, default=0, help="profile forward mode with K tangents instead")
     parser.add_argument("--steps", type=int, default=1, help="profile a rollout of S steps (CPU ms per step)")
+    parser.add_argument("--scene", choices=("cube", "bunny"), default="cube",
+                        help="cube: the peers' cube (--material, --particles, --grid); bunny: "
+                             "bench_colliders.py's CPIC cost scene (25k fluid particles on the bunny)")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.repeats < 1 or args.tangents < 0:
         parser.error("--steps and --repeats must be >= 1, --tangents >= 0")
@@ -139,7 +143,10 @@ def main(argv=None) -> int:
     from jaxmpm.model import initial_state
     from jaxmpm.step import step
 
-    model, params = _scene_model(args.particles, args.grid, args.material, jnp.float32)
+    if args.scene == "cube":
+        model, params = _scene_model(args.particles, args.grid, args.material, jnp.float32)
+    else:
+        model, params = _bunny_scene()
     state = initial_state(model, params)
     advance = jax.jit(lambda s: step(model, params, s))
     for _ in range(5):  # a state with nonzero C and F != I
@@ -175,12 +182,30 @@ def main(argv=None) -> int:
     return 0
 
 
+def _bunny_scene():
+    """``bench_colliders.py``'s CPIC cost scene: 25,000 fluid particles resting on the bunny."""
+    from pathlib import Path
+
+    import numpy as np
+    from bench_colliders import cost_points, cost_scene
+
+    from jaxmpm.scene import load_scene
+
+    with tempfile.TemporaryDirectory() as tmp:
+        points = Path(tmp) / "fluid.npy"
+        np.save(points, cost_points())
+        scene = load_scene(cost_scene("cpic", points))
+    return scene.model, scene.params
+
+
 def _per(args) -> str:
     return "per call" if args.steps == 1 else f"per step of a {args.steps}-step rollout"
 
 
 def _print_header(args, model, extra: str = "") -> None:
-    print(f"{args.material}, {model.num_particles} particles, {args.grid}^3 grid, float32; CPU ms {_per(args)} "
+    what = args.material if args.scene == "cube" else "CPIC: fluid on the bunny"
+    grid = "x".join(str(n) for n in model.grid.shape)
+    print(f"{what}, {model.num_particles} particles, {grid} grid, float32; CPU ms {_per(args)} "
           f"(summed over XLA's threads), {args.repeats} calls{extra}\n")
 
 
