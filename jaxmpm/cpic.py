@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .fusion import materialize
+from .fusion import materialize, scale_rows, spread
 from .state import Grid, Stencil, flat_index, node_indices, offset_weight, stencil_offsets, stencil_terms
 
 
@@ -778,7 +778,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
-    snrm = jnp.sum(w[..., None] * nodes.normal, axis=0)
+    snrm = jnp.sum(scale_rows(w, nodes.normal), axis=0)
     near = sw > 0
     return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
 
@@ -832,8 +832,9 @@ def _corner_lookup(grid: Grid, table, x, opposed: bool):
     corners = np.asarray(_corners(x.shape[1]), np.int32)  # (K, D)
     idx = node_indices(grid.shape, base, corners)
     on = jnp.asarray(corners, bool)[:, None, :]
-    w = jnp.prod(jnp.where(on, f[None], 1.0 - f[None]), axis=-1)
-    offset = grid.dx * (jnp.asarray(corners, dtype)[:, None, :] - f[None])
+    fk = spread(f, len(corners))  # (K, N, D)
+    w = jnp.prod(jnp.where(on, fk, 1.0 - fk), axis=-1)
+    offset = grid.dx * (jnp.asarray(corners, dtype)[:, None, :] - fk)
     return materialize(surface_estimate(_node_sample(w, table[idx], offset), grid.dx, opposed), jnp.isfinite(x[0, 0]))
 
 

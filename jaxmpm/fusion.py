@@ -57,6 +57,16 @@ def sum_last(x: Float[Array, "... D"], keepdims: bool = False) -> Float[Array, "
     return total[..., None] if keepdims else total
 
 
+def spread(x: Array, count: int) -> Array:
+    """``x`` repeated ``count`` times along a new leading axis, ``(count, *x.shape)``: one value
+    per stencil or corner node. Written as a stack, whose transpose (reverse mode's cotangent
+    of ``x``) is ``count - 1`` elementwise adds; the transpose of ``x[None]`` broadcast against
+    a ``(count, ...)`` array is a reduction over the leading axis, which XLA's CPU backend
+    hands to YNNPACK fusions (in the CPIC gather's backward pass, 9 ms for 8 x 25k x 3
+    entries)."""
+    return jnp.stack([x] * count)
+
+
 def scale_rows(w: Float[Array, "... N"], x: Float[Array, "... N *T"]) -> Float[Array, "... N *T"]:
     """``w * x`` with ``w`` broadcast over ``x``'s trailing axes ``T``: row ``n`` of ``x``
     scaled by ``w[n]`` (P2G's weighted rows, momentum over mass). Leading axes broadcast.

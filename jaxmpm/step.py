@@ -320,8 +320,8 @@ def g2p(
     C = (4.0 / grid.dx) * (moments - matmul(v[:, :, None], fx[:, None, :]))
     for c in range(0 if ghost is None else len(ghost.kinds)):
         P = ghost.projected(c, grid.dx)
-        v = v + ghost.weight[c][:, None] * P
-        C = C + (4.0 / grid.dx) * P[:, :, None] * ghost.moment[c][:, None, :]
+        v = v + scale_rows(ghost.weight[c], P)
+        C = C + matmul((4.0 / grid.dx) * P[:, :, None], ghost.moment[c][:, None, :])
     return v, C
 
 

@@ -1,5 +1,7 @@
 """The MLS-MPM step and rollouts: kinematics, conservation, transforms (jit/grad/vmap/checkpoint)."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -119,6 +121,29 @@ def test_sum_last_matches_jnp_sum(dim):
         assert a.shape == b.shape
         cot = jax.random.normal(jax.random.PRNGKey(13), b.shape, jnp.float64)
         np.testing.assert_array_equal(jax.vjp(mine, x)[1](cot)[0], jax.vjp(plain, x)[1](cot)[0])
+
+
+@pytest.mark.x64
+@pytest.mark.parametrize("count", [4, 27])
+def test_spread_transposes_into_adds(dim, count):
+    """:func:`jaxmpm.fusion.spread` equals ``x[None]`` broadcast over ``count`` nodes in value,
+    tangent and cotangent, and its cotangent is computed without a reduction (the YNNPACK
+    fusions it exists to avoid)."""
+    from jaxmpm.fusion import spread
+
+    x = jax.random.normal(jax.random.PRNGKey(15), (7, dim), jnp.float64)
+    dx = jax.random.normal(jax.random.PRNGKey(16), x.shape, jnp.float64)
+    cot = jax.random.normal(jax.random.PRNGKey(17), (count, *x.shape), jnp.float64)
+
+    def plain(x):
+        return jnp.broadcast_to(x[None], (count, *x.shape))
+
+    mine = functools.partial(spread, count=count)
+    np.testing.assert_array_equal(mine(x), plain(x))
+    np.testing.assert_array_equal(jax.jvp(mine, (x,), (dx,))[1], jax.jvp(plain, (x,), (dx,))[1])
+    np.testing.assert_allclose(jax.vjp(mine, x)[1](cot)[0], jax.vjp(plain, x)[1](cot)[0], rtol=1e-14)
+    vjp_text = str(jax.make_jaxpr(lambda c: jax.vjp(mine, x)[1](c))(cot))
+    assert "reduce_sum" not in vjp_text and "reduce_sum" in str(jax.make_jaxpr(lambda c: jax.vjp(plain, x)[1](c))(cot))
 
 
 @pytest.mark.x64
