@@ -48,7 +48,17 @@ from .colliders import (
 )
 from .errors import SceneError
 from .fusion import materialize, scale_rows, spread
-from .state import Grid, Stencil, flat_index, node_indices, offset_weight, stencil_offsets, stencil_terms
+from .state import (
+    Grid,
+    Stencil,
+    flat_index,
+    gather_rows,
+    node_indices,
+    offset_weight,
+    stencil_index,
+    stencil_offsets,
+    stencil_terms,
+)
 
 
 class CollisionField(eqx.Module):
@@ -835,7 +845,8 @@ def _corner_lookup(grid: Grid, table, x, opposed: bool):
     fk = spread(f, len(corners))  # (K, N, D)
     w = jnp.prod(jnp.where(on, fk, 1.0 - fk), axis=-1)
     offset = grid.dx * (jnp.asarray(corners, dtype)[:, None, :] - fk)
-    return materialize(surface_estimate(_node_sample(w, table[idx], offset), grid.dx, opposed), jnp.isfinite(x[0, 0]))
+    rows = jnp.stack(gather_rows(table, list(idx)))  # (K, N, 1 + D); cells are clipped into the grid
+    return materialize(surface_estimate(_node_sample(w, rows, offset), grid.dx, opposed), jnp.isfinite(x[0, 0]))
 
 
 def _corners(dim: int):
@@ -849,7 +860,8 @@ def _stencil_lookup(grid: Grid, st: Stencil, x, table):
     fields, whose opposed nodes are told apart by the particle's surface."""
     phi, nrm, near = _corner_lookup(grid, table, x, opposed=True)
     index, weight, dpos = stencil_terms(grid, st)
-    return side_bits(_node_sample(weight, table[index], grid.dx * dpos), phi, nrm), phi, nrm, near
+    rows = jnp.stack(gather_rows(table, stencil_index(grid, st)))  # (K, N, 1 + D), as the G2P gather
+    return side_bits(_node_sample(weight, rows, grid.dx * dpos), phi, nrm), phi, nrm, near
 
 
 def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, collider, time):

@@ -413,7 +413,11 @@ def stencil_moments(
     must be :func:`bspline_weights` of ``st.fx`` (as :func:`compute_stencil` makes it).
     """
     offsets = stencil_offsets(st.dim)
-    return _stencil_moments(offsets, stencil_weights(st, incompatible), values)
+    if incompatible is None:
+        return _stencil_moments(offsets, stencil_weights(st), values)
+    # stored once: each output entry of the sums would otherwise re-derive the 3^D masked weights
+    weights = compute_once(stencil_weights, st, incompatible, token=always_true(st.base))
+    return _stencil_moments(offsets, weights, values)
 
 
 @stencil_moments.defjvp

@@ -319,7 +319,8 @@ def g2p(
     fx = jnp.stack(st.fx, axis=-1)
     C = (4.0 / grid.dx) * (moments - matmul(v[:, :, None], fx[:, None, :]))
     for c in range(0 if ghost is None else len(ghost.kinds)):
-        P = ghost.projected(c, grid.dx)
+        # stored once: each of C's D x D entries would otherwise re-derive the projection
+        P = compute_once(lambda g, c=c: g.projected(c, grid.dx), ghost, token=always_true(st.base))
         v = v + scale_rows(ghost.weight[c], P)
         C = C + matmul((4.0 / grid.dx) * P[:, :, None], ghost.moment[c][:, None, :])
     return v, C
