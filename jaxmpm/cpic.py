@@ -47,7 +47,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .fusion import materialize, scale_rows, spread
+from .fusion import always_true, materialize, scale_rows, spread
 from .state import (
     Grid,
     Stencil,
@@ -778,12 +778,16 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         cos = [row_dot(nodes.normal, nodes.normal[j][None]) for j in range(w.shape[0])]  # [j][i, n]
         same = [same_face_fraction(c) * w[j][None] for j, c in enumerate(cos)]  # node j's weight on i's face
         face = _safe_ratio(sum(s * carried[j][None] for j, s in enumerate(same)), sum(same))
+        face = materialize(face, always_true(nodes.affine))  # read by key's two branches
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
         live = nodes.affine & (w > 0) & jnp.isfinite(key)
         top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
-        p = _safe_ratio(p, jnp.sum(p, axis=0))
+        # stored once (in forward mode with its tangents): the sum below would otherwise re-derive
+        # every p_i, through the pairwise face sums, for each node j (forward-mode Jacobians
+        # 18x a step on the bunny's thin field)
+        p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
         w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
     sw = jnp.sum(w, axis=0)
