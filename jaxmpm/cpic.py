@@ -24,6 +24,7 @@ Conventions:
 from __future__ import annotations
 
 
+import functools
 import itertools
 
 import equinox as eqx
@@ -792,7 +793,9 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
-    snrm = jnp.sum(scale_rows(w, nodes.normal), axis=0)
+    # the normals' sum as adds over the nodes (a YNNPACK reduction otherwise); sw and sphi
+    # written so too were slower (w is then re-derived in each)
+    snrm = sum(scale_rows(w[i], nodes.normal[i]) for i in range(w.shape[0]))
     near = sw > 0
     return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
 
@@ -825,9 +828,12 @@ def side_bits(nodes: NodeSample, phi, normal):
     opposed = affine & (row_dot(nodes.normal, normal[None]) < OPPOSED_COS)
     ahead = phi[None] + row_dot(normal[None], nodes.offset)
     flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
-    shifts = jnp.arange(affine.shape[0], dtype=jnp.int32)[:, None]
-    # distinct powers of two: their sum is their bitwise or
-    return tuple(jnp.sum(jnp.left_shift(f.astype(jnp.int32), shifts), axis=0, dtype=jnp.int32) for f in flags)
+    # node o's flag as bit o, OR-ed over the nodes with elementwise ops (a reduction over the
+    # node axis is a slow loop on XLA's CPU backend)
+    def bits(f):
+        return functools.reduce(jnp.bitwise_or, [jnp.left_shift(f[o].astype(jnp.int32), o) for o in range(f.shape[0])])
+
+    return tuple(bits(f) for f in flags)
 
 
 def _corner_lookup(grid: Grid, table, x, opposed: bool):
