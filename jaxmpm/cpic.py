@@ -786,8 +786,8 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
         # stored once (in forward mode with its tangents): the sum below would otherwise re-derive
-        # every p_i, through the pairwise face sums, for each node j (forward-mode Jacobians
-        # 18x a step on the bunny's thin field)
+        # every p_i, through the pairwise face sums, for each node j (on the bunny's thin field
+        # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
         p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
         w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
@@ -869,7 +869,7 @@ def _stencil_lookup(grid: Grid, st: Stencil, x, table):
     (from its cell's corners, :func:`_corner_lookup`, as for every static field). Used for thin
     fields, whose opposed nodes are told apart by the particle's surface."""
     phi, nrm, near = _corner_lookup(grid, table, x, opposed=True)
-    index, weight, dpos = stencil_terms(grid, st)
+    _, weight, dpos = stencil_terms(grid, st)
     rows = jnp.stack(gather_rows(table, stencil_index(grid, st)))  # (K, N, 1 + D), as the G2P gather
     return side_bits(_node_sample(weight, rows, grid.dx * dpos), phi, nrm), phi, nrm, near
 
