@@ -3,7 +3,7 @@
     pip install xprof                     # reads jax.profiler's traces (not a jaxmpm dependency)
     python benchmarks/profile_step.py [--material corotated] [--particles 25000] [--grid 64]
                                       [--repeats 10] [--json out.json] [--tangents K] [--steps S]
-                                      [--scene cube|bunny]
+                                      [--scene cube|bunny|moving]
 
 Traces ``--repeats`` calls of (a) the jitted step and (b) the jitted gradient of a loss of
 one step with respect to the parameters and the state, with :func:`jax.profiler.trace`. Every
@@ -129,9 +129,10 @@ def main(argv=None) -> int:
     parser.add_argument("--json", default=None)
     parser.add_argument("--tangents", type=int, default=0, help="profile forward mode with K tangents instead")
     parser.add_argument("--steps", type=int, default=1, help="profile a rollout of S steps (CPU ms per step)")
-    parser.add_argument("--scene", choices=("cube", "bunny"), default="cube",
+    parser.add_argument("--scene", choices=("cube", "bunny", "moving"), default="cube",
                         help="cube: the peers' cube (--material, --particles, --grid); bunny: "
-                             "bench_colliders.py's CPIC cost scene (25k fluid particles on the bunny)")
+                             "bench_colliders.py's CPIC cost scene (25k fluid particles on the bunny); "
+                             "moving: the same with the bunny moving at 0.05 m/s")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.repeats < 1 or args.tangents < 0:
         parser.error("--steps and --repeats must be >= 1, --tangents >= 0")
@@ -146,7 +147,7 @@ def main(argv=None) -> int:
     if args.scene == "cube":
         model, params = _scene_model(args.particles, args.grid, args.material, jnp.float32)
     else:
-        model, params = _bunny_scene()
+        model, params = _bunny_scene(moving=args.scene == "moving")
     state = initial_state(model, params)
     advance = jax.jit(lambda s: step(model, params, s))
     for _ in range(5):  # a state with nonzero C and F != I
@@ -182,8 +183,9 @@ def main(argv=None) -> int:
     return 0
 
 
-def _bunny_scene():
-    """``bench_colliders.py``'s CPIC cost scene: 25,000 fluid particles resting on the bunny."""
+def _bunny_scene(moving: bool = False):
+    """``bench_colliders.py``'s CPIC cost scene: 25,000 fluid particles resting on the bunny
+    (``moving``: the bunny translating at 0.05 m/s, so its field is read in its rest frame)."""
     from pathlib import Path
 
     import numpy as np
@@ -194,7 +196,10 @@ def _bunny_scene():
     with tempfile.TemporaryDirectory() as tmp:
         points = Path(tmp) / "fluid.npy"
         np.save(points, cost_points())
-        scene = load_scene(cost_scene("cpic", points))
+        spec = cost_scene("cpic", points)
+        if moving:
+            spec["colliders"][1]["velocity"] = [0.0, 0.05, 0.0]
+        scene = load_scene(spec)
     return scene.model, scene.params
 
 
@@ -203,7 +208,8 @@ def _per(args) -> str:
 
 
 def _print_header(args, model, extra: str = "") -> None:
-    what = args.material if args.scene == "cube" else "CPIC: fluid on the bunny"
+    what = {"cube": args.material, "bunny": "CPIC: fluid on the bunny",
+            "moving": "CPIC: fluid on the moving bunny"}[args.scene]
     grid = "x".join(str(n) for n in model.grid.shape)
     print(f"{what}, {model.num_particles} particles, {grid} grid, float32; CPU ms {_per(args)} "
           f"(summed over XLA's threads), {args.repeats} calls{extra}\n")

@@ -48,7 +48,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .fusion import always_true, materialize, scale_rows, spread
+from .fusion import always_true, compute_once, materialize, scale_rows, spread
 from .state import (
     Grid,
     Stencil,
@@ -644,8 +644,17 @@ def _safe_normalize(v):
 def _lattice_lookup(field: CollisionField, table, X):
     """Nearest-node rows of ``table`` at rest-frame points ``X (M, D)``, with the node positions.
 
-    Points outside the field's lattice get a zero row (no affinity).
+    Points outside the field's lattice get a zero row (no affinity). Both are constant between
+    nodes (no derivative with respect to ``X``) and stored once: their consumers (the surface
+    estimate's pairwise sums, and in reverse mode their transposes, per node) would otherwise
+    re-derive each node's index from the particle's position, through the collider's motion,
+    for every entry they write.
     """
+    return compute_once(functools.partial(_nearest_rows, field), table, jax.lax.stop_gradient(X),
+                        token=always_true(X))
+
+
+def _nearest_rows(field: CollisionField, table, X):
     dtype = X.dtype
     origin = jnp.asarray(field.origin, dtype)
     shape = field.shape
@@ -776,9 +785,9 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     if opposed:
         # The pairwise terms are summed one partner node at a time, each a (K, N) array: the
         # (K, K, N) cosines (73 MB at 25k particles in 3D) were stored and read three times.
-        cos = [row_dot(nodes.normal, nodes.normal[j][None]) for j in range(w.shape[0])]  # [j][i, n]
-        same = [same_face_fraction(c) * w[j][None] for j, c in enumerate(cos)]  # node j's weight on i's face
-        face = _safe_ratio(sum(s * carried[j][None] for j, s in enumerate(same)), sum(same))
+        cos = [row_dot(nodes.normal, n_j) for n_j in node_rows(nodes.normal)]  # [j][i, n]
+        same = [same_face_fraction(c) * w_j for c, w_j in zip(cos, node_rows(w))]  # node j's weight on i's face
+        face = _safe_ratio(sum(s * c_j for s, c_j in zip(same, node_rows(carried))), sum(same))
         face = materialize(face, always_true(nodes.affine))  # read by key's two branches
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
@@ -790,14 +799,26 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
         p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
-        w = w * sum(jnp.where(c >= OPPOSED_COS, p[i][None], 0.0) for i, c in enumerate(cos))
+        w = w * sum(jnp.where(c >= OPPOSED_COS, p_i, 0.0) for p_i, c in zip(node_rows(p), cos))
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
     # the normals' sum as adds over the nodes (a YNNPACK reduction otherwise); sw and sphi
     # written so too were slower (w is then re-derived in each)
-    snrm = sum(scale_rows(w[i], nodes.normal[i]) for i in range(w.shape[0]))
+    snrm = sum(scale_rows(w_i, n_i) for w_i, n_i in zip(node_rows(w), node_rows(nodes.normal)))[0]
+    # stored once: in reverse mode each node's weight cotangent reads them (the sum over the
+    # nodes was re-derived in each of the nodes' transposes)
+    sw, sphi, snrm = materialize((sw, sphi, snrm), always_true(nodes.affine))
     near = sw > 0
     return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
+
+
+def node_rows(x: Array) -> list[Array]:
+    """The ``K`` rows ``x[k:k + 1]`` of a node-major array ``(K, ...)``, each ``(1, ...)``, as one
+    split: reverse mode gathers their cotangents with one concatenation, where indexing
+    ``x[k]`` transposes into a zero-padded ``(K, ...)`` array per row, summed (``K^2``
+    entries: in the surface estimate's backward pass on a moving collider, 27 sums of 27
+    padded arrays, re-derived in each of their 27 consumers)."""
+    return jnp.split(x, x.shape[0], axis=0)
 
 
 def _safe_ratio(a, b):
@@ -880,18 +901,23 @@ def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, col
     looked up in the collider's rest frame at ``R(t)^T (x_i - c(t)) + c0`` (nearest lattice
     node ``j`` plus the first-order correction ``N_j·(X - X_j)``, so sides move continuously
     with the collider)."""
-    dtype = x.dtype
     dx = grid.dx
-    c, rot = rigid_transform(collider, time, dtype)
-    pivot = jnp.asarray(collider.pivot, dtype)
-    Xp = pivot + rows_times(x - c, rot)
+    c, rot = rigid_transform(collider, time, x.dtype)
+    pivot = jnp.asarray(collider.pivot, x.dtype)
     _, weight, dpos = stencil_terms(grid, st)
-    Xi = pivot + rows_times(x[None] + dx * dpos - c, rot)  # the world nodes, in the rest frame (K, N, D)
-    row, Xj = _lattice_lookup(field, table, Xi.reshape(-1, Xi.shape[-1]))
-    row, Xj = row.reshape(Xi.shape[:2] + row.shape[-1:]), Xj.reshape(Xi.shape)
-    sample = _node_sample(weight, row, Xi - Xp[None])
-    nodes = eqx.tree_at(lambda s: s.node_sd, sample, row[..., 0] + row_dot(sample.normal, Xi - Xj))
-    phi, nrm, near = surface_estimate(nodes, dx)
+    count = weight.shape[0]
+    Xp = spread(pivot + rows_times(x - c, rot), count)  # the particle in the rest frame, per node (K, N, D)
+    offset = rows_times(dx * dpos, rot)  # X_i - X_p (K, N, D)
+    row, Xj = _lattice_lookup(field, table, (Xp + offset).reshape(-1, x.shape[-1]))
+    row, Xj = row.reshape(offset.shape[:2] + row.shape[-1:]), Xj.reshape(offset.shape)
+    sample = _node_sample(weight, row, offset)
+    sample = eqx.tree_at(lambda s: s.node_sd, sample, row[..., 0] + row_dot(sample.normal, Xp + offset - Xj))
+    # stored once: the surface estimate's pairwise sums (and in reverse mode their transposes,
+    # one per node) would otherwise each re-derive every node's rest-frame offset and distance
+    nodes = materialize(sample, always_true(row))
+    # stored once, as in _corner_lookup: the side bits below, and the tags made from them, read
+    # phi and the normal for every stencil node
+    phi, nrm, near = materialize(surface_estimate(nodes, dx), always_true(row))
     return side_bits(nodes, phi, nrm), phi, rows_times(nrm, rot.T), near
 
 

@@ -15,7 +15,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jaxtyping import Array, Bool, Float, Int
 
-from .fusion import always_true, compute_once, materialize, scale_rows
+from .fusion import always_true, compute_once, materialize, scale_rows, spread
 
 #: Number of padding cells added around the scene's domain on every side, so that the
 #: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
@@ -229,8 +229,8 @@ def stencil_terms(grid: Grid, st: Stencil):
     index = node_indices(grid.shape, st.base, offsets)
     weight = functools.reduce(operator.mul, [jnp.stack([st.w[k][d] for k in range(3)])[offsets[:, d]]
                                              for d in range(dim)])
-    fx = jnp.stack(st.fx, axis=-1)  # (N, D)
-    dpos = jnp.asarray(offsets, fx.dtype)[:, None, :] - fx[None]
+    fx = spread(jnp.stack(st.fx, axis=-1), len(offsets))  # (K, N, D)
+    dpos = jnp.asarray(offsets, fx.dtype)[:, None, :] - fx
     return index, weight, dpos
 
 
