@@ -48,7 +48,7 @@ from .colliders import (
     rows_times,
 )
 from .errors import SceneError
-from .fusion import always_true, compute_once, materialize, scale_rows, spread
+from .fusion import always_true, compute_once, materialize, scale_rows, spread, symmetric_pair_sum
 from .state import (
     Grid,
     Stencil,
@@ -785,9 +785,9 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     if opposed:
         # The pairwise terms are summed one partner node at a time, each a (K, N) array: the
         # (K, K, N) cosines (73 MB at 25k particles in 3D) were stored and read three times.
-        cos = [row_dot(nodes.normal, n_j) for n_j in node_rows(nodes.normal)]  # [j][i, n]
-        same = [same_face_fraction(c) * w_j for c, w_j in zip(cos, node_rows(w))]  # node j's weight on i's face
-        face = _safe_ratio(sum(s * c_j for s, c_j in zip(same, node_rows(carried))), sum(same))
+        cos = [row_dot(nodes.normal, n_j) for n_j in node_rows(nodes.normal)]  # [j][i, n], symmetric
+        same = [same_face_fraction(c) for c in cos]  # how much node j counts on node i's face
+        face = _safe_ratio(symmetric_pair_sum(same, w * carried), symmetric_pair_sum(same, w))
         face = materialize(face, always_true(nodes.affine))  # read by key's two branches
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
@@ -799,7 +799,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
         p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
-        w = w * sum(jnp.where(c >= OPPOSED_COS, p_i, 0.0) for p_i, c in zip(node_rows(p), cos))
+        w = w * symmetric_pair_sum([(c >= OPPOSED_COS).astype(w.dtype) for c in cos], p)
     sw = jnp.sum(w, axis=0)
     sphi = jnp.sum(w * carried, axis=0)
     # the normals' sum as adds over the nodes (a YNNPACK reduction otherwise); sw and sphi

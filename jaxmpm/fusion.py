@@ -15,6 +15,8 @@ broadcast weight and of a value broadcast over a node axis.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax.extend.core import Primitive
@@ -108,7 +110,8 @@ def _scale_rows_transpose_x(ct, w, x):
 
 def sum_to_shape(g: Array, shape: tuple[int, ...]) -> Array:
     """``g`` summed over the leading axes that broadcasting added or stretched in ``shape``."""
-    g = g.sum(axis=tuple(range(g.ndim - len(shape))))
+    added = tuple(range(g.ndim - len(shape)))
+    g = g.sum(axis=added) if added else g
     stretched = tuple(i for i, (n, m) in enumerate(zip(shape, g.shape)) if n == 1 and m != 1)
     return g.sum(axis=stretched, keepdims=True) if stretched else g
 
@@ -125,3 +128,77 @@ _scale_rows_p.def_abstract_eval(_scale_rows_abstract)
 mlir.register_lowering(_scale_rows_p, mlir.lower_fun(_scale_rows_impl, multiple_results=False))
 ad.defbilinear(_scale_rows_p, _scale_rows_transpose_w, _scale_rows_transpose_x)
 batching.primitive_batchers[_scale_rows_p] = _scale_rows_batch
+
+
+def symmetric_pair_sum(weights: list[Array], values: Array) -> Array:
+    """``out[i] = sum_j weights[j][i] * values[j]`` over the ``K`` nodes of a node-major
+    ``values (K, ...)``, for a symmetric table of pair weights given by rows (``weights[j]``,
+    ``(K, ...)`` each, with ``weights[j][i] == weights[i][j]``): the CPIC surface estimate's
+    sums over partner nodes. Written as ``K - 1`` elementwise adds of ``weights[j] *
+    values[j:j + 1]``, which fuse.
+
+    A JAX primitive, bilinear, with its own transpose. By symmetry the cotangent of
+    ``values`` is the same sum of the cotangent, adds again; JAX's transpose of the
+    broadcast ``values[j:j + 1]`` is a reduction over the ``K`` nodes per partner, which
+    XLA's CPU backend hands to YNNPACK fusions (on a moving collider, 107 of them took 112
+    of the contact stage's 186 CPU ms per backward step; docs/benchmarks.md, session 30)."""
+    dtype = jnp.result_type(values, *weights)
+    return _pair_sum_p.bind(*(jnp.asarray(w, dtype) for w in weights), jnp.asarray(values, dtype))
+
+
+def _pair_sum_impl(*args):
+    *weights, values = args
+    total = weights[0] * values[0:1]
+    for j in range(1, len(weights)):
+        total = total + weights[j] * values[j:j + 1]
+    return total
+
+
+def _pair_sum_abstract(*avals):
+    *weights, values = avals
+    shape = jnp.broadcast_shapes(values.shape, *(w.shape for w in weights))
+    return jax.core.ShapedArray(shape, values.dtype)
+
+
+def _pair_sum_jvp(primals, tangents):
+    *weights, values = primals
+    *dweights, dvalues = tangents
+    out = _pair_sum_p.bind(*primals)
+    terms = []
+    if type(dvalues) is not ad.Zero:
+        terms.append(_pair_sum_p.bind(*weights, dvalues))
+    if any(type(d) is not ad.Zero for d in dweights):
+        terms.append(_pair_sum_p.bind(*(ad.instantiate_zeros(d) for d in dweights), values))
+    if not terms:
+        return out, ad.Zero.from_primal_value(out)
+    return out, functools.reduce(jnp.add, terms)
+
+
+def _pair_sum_transpose(ct, *args):
+    *weights, values = args
+    if type(ct) is ad.Zero:
+        return [None if not ad.is_undefined_primal(a) else ad.Zero(a.aval) for a in args]
+    if ad.is_undefined_primal(values):
+        if any(ad.is_undefined_primal(w) for w in weights):
+            raise ValueError("symmetric_pair_sum is bilinear: one of its operands must be known")
+        # stored once: its consumers (the cotangents of the node weights, corner products, ...)
+        # would otherwise each re-derive the K-term sum for every entry they write
+        summed = compute_once(lambda *a: _pair_sum_p.bind(*a), *weights, ct, token=always_true(weights[0]))
+        return [None] * len(weights) + [sum_to_shape(summed, values.aval.shape)]
+    return [sum_to_shape(ct * values[j:j + 1], w.aval.shape) if ad.is_undefined_primal(w) else None
+            for j, w in enumerate(weights)] + [None]
+
+
+def _pair_sum_batch(args, dims):
+    # the batch becomes axis 1, after the node axis (a weight or value without it broadcasts)
+    moved = [jnp.expand_dims(a, 1) if d is None else jnp.moveaxis(a, d, 1) for a, d in zip(args, dims)]
+    return _pair_sum_p.bind(*moved), 1
+
+
+_pair_sum_p = Primitive("jaxmpm_symmetric_pair_sum")
+_pair_sum_p.def_impl(_pair_sum_impl)
+_pair_sum_p.def_abstract_eval(_pair_sum_abstract)
+mlir.register_lowering(_pair_sum_p, mlir.lower_fun(_pair_sum_impl, multiple_results=False))
+ad.primitive_jvps[_pair_sum_p] = _pair_sum_jvp
+ad.primitive_transposes[_pair_sum_p] = _pair_sum_transpose
+batching.primitive_batchers[_pair_sum_p] = _pair_sum_batch
