@@ -9,8 +9,9 @@ JAX differentiates, batches and transposes both helpers as conditionals: ``mater
 the identity, and ``compute_once`` is linear wherever its function is (a tangent gather).
 
 :func:`sum_last` keeps a sum over a small last axis out of XLA's reductions altogether, and
-:func:`scale_rows` and :func:`spread` the sums reverse mode makes of a product with a
-broadcast weight and of a value broadcast over a node axis.
+:func:`scale_rows`, :func:`spread` and :func:`symmetric_pair_sum` the sums reverse mode makes
+of a product with a broadcast weight, of a value broadcast over a node axis and of a sum over
+partner nodes.
 """
 
 from __future__ import annotations
