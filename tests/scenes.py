@@ -62,3 +62,24 @@ MATERIAL_CASES = {
     ),
     "sand": ({"model": "sand", "friction_angle": 40.0}, {"friction_angle": 10.0}),
 }
+
+
+def final_position_loss(scene, names):
+    """A smooth loss of the last frame's positions as a function of the parameters ``names``
+    (scene-file names, ``jnp`` array of values in that order): what the gradient tests
+    compare with central differences."""
+    import jax.numpy as jnp
+
+    from jaxmpm.identify import resolve_name, set_param
+    from jaxmpm.step import simulate
+
+    paths = [resolve_name(scene.model, scene.params, n) for n in names]
+
+    def loss(values):
+        params = scene.params
+        for path, value in zip(paths, values):
+            params = set_param(params, path, value)
+        x = simulate(scene.model, params).x[-1]
+        return jnp.mean(x[:, 0] ** 3 + 2.0 * x[:, 1] ** 2 + x[:, 0] * x[:, 1])
+
+    return loss

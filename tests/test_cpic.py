@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from collider_scenes import ELASTIC, FLUID, SAND, Incline, depth_inside, rollout
+from scenes import final_position_loss
 
 from jaxmpm.colliders import Box, Plane
 from jaxmpm.cpic import GHOST_WEIGHT_MIN, CollisionField, ghost_mean_offset
@@ -213,16 +214,7 @@ def test_gradient_through_a_moving_collider_matches_central_differences():
     spec.update(frames=2, substeps=30, gravity=[0.0, -9.8])  # the block slides down the box's face
     spec["colliders"][0].update(hi=[0.39, 0.61], contact="slip")
     scene = load_scene(spec, dtype=jnp.float64)
-    names = ["E", "nu"]
-    paths = [resolve_name(scene.model, scene.params, n) for n in names]
-
-    def loss(values):
-        params = scene.params
-        for path, value in zip(paths, values):
-            params = set_param(params, path, value)
-        x = simulate(scene.model, params).x[-1]
-        return jnp.mean(x[:, 0] ** 3 + 2.0 * x[:, 1] ** 2 + x[:, 0] * x[:, 1])
-
+    loss = final_position_loss(scene, ["E", "nu"])
     values = jnp.asarray([1e5, 0.3], jnp.float64)
     steps = 1e-2 * values
 
