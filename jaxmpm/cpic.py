@@ -787,8 +787,14 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # (K, K, N) cosines (73 MB at 25k particles in 3D) were stored and read three times.
         cos = [row_dot(nodes.normal, n_j) for n_j in node_rows(nodes.normal)]  # [j][i, n], symmetric
         same = [same_face_fraction(c) for c in cos]  # how much node j counts on node i's face
-        face = _safe_ratio(symmetric_pair_sum(same, w * carried), symmetric_pair_sum(same, w))
-        face = materialize(face, always_true(nodes.affine))  # read by key's two branches
+        sums = (symmetric_pair_sum(same, w * carried), symmetric_pair_sum(same, w))
+        if w.shape[0] >= _STORED_PAIR_SUMS:
+            # stored once (in forward mode with their tangents): the ratio's tangent re-derived
+            # both, K^2 pair terms, for each tangent and entry (a moving collider's 3-tangent
+            # Jacobian: contact stage 99 -> 66 CPU ms per step). Over the 8 cell corners storing
+            # them costs more (the tangents' layout changes; the bunny's contact 20 -> 33 ms).
+            sums = materialize(sums, always_true(nodes.affine))
+        face = materialize(_safe_ratio(*sums), always_true(nodes.affine))  # read by key's two branches
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
         live = nodes.affine & (w > 0) & jnp.isfinite(key)
@@ -798,18 +804,25 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # every p_i, through the pairwise face sums, for each node j (on the bunny's thin field
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
         p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
-        # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j
-        w = w * symmetric_pair_sum([(c >= OPPOSED_COS).astype(w.dtype) for c in cos], p)
-    sw = jnp.sum(w, axis=0)
-    sphi = jnp.sum(w * carried, axis=0)
-    # the normals' sum as adds over the nodes (a YNNPACK reduction otherwise); sw and sphi
-    # written so too were slower (w is then re-derived in each)
-    snrm = sum(scale_rows(w_i, n_i) for w_i, n_i in zip(node_rows(w), node_rows(nodes.normal)))[0]
+        # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j. The share is
+        # stored once (with its tangents): w's tangent re-derived it, and p, per tangent
+        share = symmetric_pair_sum([(c >= OPPOSED_COS).astype(w.dtype) for c in cos], p)
+        w = w * materialize(share, always_true(nodes.affine))
+    # the sums over the nodes as adds (XLA's CPU backend hands a reduction over them to YNNPACK)
+    w_rows = node_rows(w)
+    sw = sum(w_rows)[0]
+    sphi = sum(w_i * c_i for w_i, c_i in zip(w_rows, node_rows(carried)))[0]
+    snrm = sum(scale_rows(w_i, n_i) for w_i, n_i in zip(w_rows, node_rows(nodes.normal)))[0]
     # stored once: in reverse mode each node's weight cotangent reads them (the sum over the
     # nodes was re-derived in each of the nodes' transposes)
     sw, sphi, snrm = materialize((sw, sphi, snrm), always_true(nodes.affine))
     near = sw > 0
     return jnp.where(near, _safe_ratio(sphi, sw), 2.0 * dx), _safe_normalize(snrm), near
+
+
+#: From how many nodes the surface estimate stores its pairwise face sums (the 3^3 stencil
+#: nodes of a moving collider; not the 2^D cell corners of a static field).
+_STORED_PAIR_SUMS = 27
 
 
 def node_rows(x: Array) -> list[Array]:
@@ -902,7 +915,9 @@ def _moving_lookup(grid: Grid, st: Stencil, x, field: CollisionField, table, col
     node ``j`` plus the first-order correction ``N_j·(X - X_j)``, so sides move continuously
     with the collider)."""
     dx = grid.dx
-    c, rot = rigid_transform(collider, time, x.dtype)
+    # stored once (a few numbers, with their tangents): the offsets' tangent re-derived the
+    # rotation's from the time's for every node and entry (45 CPU ms per step at 3 tangents)
+    c, rot = materialize(rigid_transform(collider, time, x.dtype), always_true(st.base))
     pivot = jnp.asarray(collider.pivot, x.dtype)
     _, weight, dpos = stencil_terms(grid, st)
     count = weight.shape[0]
