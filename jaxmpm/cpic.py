@@ -802,7 +802,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # backend hands reductions over them to YNNPACK fusions)
         top = jax.lax.stop_gradient(functools.reduce(jnp.maximum, node_rows(jnp.where(live, key, -jnp.inf))))
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
-        p = materialize(p, always_true(nodes.affine))
+        p = materialize(p, always_true(nodes.affine))  # the sum below reads each row K times
         # stored once (in forward mode with its tangents): the sum below would otherwise re-derive
         # every p_i, through the pairwise face sums, for each node j (on the bunny's thin field
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)

@@ -461,7 +461,9 @@ def polar_rotation(F: Float[Array, "*batch d d"]) -> Float[Array, "*batch d d"]:
     ``F = R S``, ``det R = +1``; for ``det F < 0`` the sign goes to ``S``), for 2x2 or 3x3
     matrices with any leading batch dimensions.
 
-    Same value as ``U @ V.mT`` from :func:`svd`, with a derivative rule of its own:
+    Same value as ``U @ V.mT`` from :func:`svd` (bit for bit; under a derivative the rule's
+    primal multiplies its stored factors and may round an ulp apart), with a derivative rule of
+    its own:
     ``dR = U (Omega_U - Omega_V) V^T`` (4 small products per tangent instead of the 6 of
     differentiating ``U`` and ``V`` apart), finite at repeated singular values as :func:`svd`'s.
     """
