@@ -798,15 +798,12 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
         live = nodes.affine & (w > 0) & jnp.isfinite(key)
-        # the max and the sum over the nodes as elementwise ops over the node rows (XLA's CPU
-        # backend hands reductions over them to YNNPACK fusions)
-        top = jax.lax.stop_gradient(functools.reduce(jnp.maximum, node_rows(jnp.where(live, key, -jnp.inf))))
+        top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
         p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)  # (K, N), unnormalised
-        p = materialize(p, always_true(nodes.affine))  # the sum below reads each row K times
         # stored once (in forward mode with its tangents): the sum below would otherwise re-derive
         # every p_i, through the pairwise face sums, for each node j (on the bunny's thin field
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
-        p = materialize(_safe_ratio(p, sum(node_rows(p))), always_true(nodes.affine))
+        p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j. The share is
         # stored once (with its tangents): w's tangent re-derived it, and p, per tangent
         share = symmetric_pair_sum([(c >= OPPOSED_COS).astype(w.dtype) for c in cos], p)
