@@ -21,6 +21,7 @@ Usage::
     jaxmpm bench sysid --preset reduced --out bench_sysid      # what docs/benchmark_sysid.md reports
     jaxmpm bench sysid --preset full --out bench_sysid_full    # the whole protocol (hours to days on a CPU)
     jaxmpm bench sysid --preset ci --out /tmp/ci               # one tiny case
+    jaxmpm bench sysid --only newtonian-small --float64 --out bench_sysid_f64   # the same cases in float64
 """
 
 from __future__ import annotations
@@ -259,9 +260,21 @@ def code_version() -> str:
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
-def run_case(case: Case, preset: Preset) -> dict:
-    """Generate the ground truth of ``case``, observe it, identify it; return a result row."""
+def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None) -> dict:
+    """Generate the ground truth of ``case``, observe it, identify it; return a result row.
+
+    ``dtype``: ``"float32"`` or ``"float64"`` (enables JAX's x64 mode), for the ground truth and
+    the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
+    guesses, :data:`INITIAL_GUESS`)."""
+    import jax
+
+    if dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    elif dtype != "float32":
+        raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
     import jax.numpy as jnp
+
+    jdtype = jnp.dtype(dtype)
 
     from .fit import FitConfig, fit
     from .identify.residuals import make_fit_renderer
@@ -273,7 +286,7 @@ def run_case(case: Case, preset: Preset) -> dict:
     truth = truth_values(case.material, case.index)
     v0 = (0.0, -1.0, 0.0)
     gt_case = replace(case, mode="cpic")  # the truth is always simulated with CPIC
-    gt = load_scene(scene_spec(gt_case, preset, truth, v0))
+    gt = load_scene(scene_spec(gt_case, preset, truth, v0), dtype=jdtype)
     t0 = time.perf_counter()
     traj = simulate(gt.model, gt.params, checkpoint=None)
     bad = traj.first_unstable_frame()
@@ -291,8 +304,8 @@ def run_case(case: Case, preset: Preset) -> dict:
     obs = Observation(**obs_kwargs, scene=gt.to_json())
     generate_s = time.perf_counter() - t0
 
-    guess = dict(INITIAL_GUESS[case.material])
-    start = load_scene(scene_spec(case, preset, guess, velocity=(0.0, 0.0, 0.0)))
+    guess = dict(INITIAL_GUESS[case.material] if guess is None else guess)
+    start = load_scene(scene_spec(case, preset, guess, velocity=(0.0, 0.0, 0.0)), dtype=jdtype)
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
@@ -320,7 +333,7 @@ def run_case(case: Case, preset: Preset) -> dict:
         "load_average": os.getloadavg()[0],
         "substeps": int(result.substeps),
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
-        "dtype": str(jnp.zeros(()).dtype),
+        "dtype": dtype,
         "code": code_version(),
     }
 
@@ -329,18 +342,18 @@ def _child(argv: list[str]) -> None:
     case = Case(**json.loads(argv[0]))
     preset = Preset(**json.loads(argv[1]))
     try:
-        row = run_case(case, preset)
+        row = run_case(case, preset, argv[2])
     except Exception as err:  # a failed case is a result too
         row = {"case": asdict(case), "key": case.key, "error": f"{type(err).__name__}: {err}"}
     row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print("SYSID-JSON " + json.dumps(row))
 
 
-def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path) -> dict:
+def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path, dtype: str = "float32") -> dict:
     """Run one case in a subprocess; its terminal output (the fit's progress) streams to ``log``,
     so a case that times out or crashes leaves its progress behind."""
     cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench_sysid import _child; _child(sys.argv[1:])",
-           json.dumps(asdict(case)), json.dumps(asdict(preset))]
+           json.dumps(asdict(case)), json.dumps(asdict(preset)), dtype]
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as fh:
         try:
@@ -459,7 +472,11 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     parser.add_argument("--limit", type=int, default=None, help="run at most this many new cases")
     parser.add_argument("--timeout", type=float, default=None, help="seconds per case (default: none)")
     parser.add_argument("--list", action="store_true", help="list the cases and exit")
+    parser.add_argument("--float64", action="store_true",
+                        help="simulate the ground truths and fit in float64 (to tell a rough loss from rounding); "
+                             "an output folder holds rows of one dtype")
     args = parser.parse_args(argv)
+    dtype = "float64" if args.float64 else "float32"
     preset, cases = preset_cases(args.preset)
     if args.only:
         keys = [k.strip() for k in args.only.split(",") if k.strip()]
@@ -478,15 +495,19 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
             if line.strip():
                 row = json.loads(line)
                 done[row["key"]] = row
+    other = sorted({r.get("dtype", "float32") for r in done.values() if "error" not in r} - {dtype})
+    if other:
+        print(f"error: {results} holds {', '.join(other)} rows; run {dtype} into another --out", file=sys.stderr)
+        return 2
     todo = [c for c in cases if c.key not in done]
     if args.limit is not None:
         todo = todo[: args.limit]
-    print(f"{len(cases)} cases ({len(cases) - len(todo)} done), preset {args.preset}: dx = {preset.dx}, "
+    print(f"{len(cases)} cases ({len(cases) - len(todo)} done), preset {args.preset} in {dtype}: dx = {preset.dx}, "
           f"{preset.substeps} substeps/frame, {preset.frames} frames, {preset.views} views at {preset.res} px",
           file=sys.stderr, flush=True)
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
-        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log")
+        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype)
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")

@@ -768,7 +768,10 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
     then keeps the share ``sum_i p_i [N_i·N_j >= OPPOSED_COS]`` of its weight (a test between
     two nodes' fixed normals: only the ``p_i`` move with the particle). At the temperature used
     this is the hard choice except within ~1e-4 cells of a tie: where the ranking switches
-    between two faces, the estimate still jumps.
+    between two faces, the estimate still jumps. The shares ``p_i`` carry no derivative: the
+    tangents and cotangents are those of the estimate with its faces fixed (inside the sliver
+    the shares' own slope, ~1e4 per cell, made forward-mode Jacobians spike to 1e17 and fits
+    stop at false floors; docs/benchmark_sysid.md, session 32).
 
     Arguments:
         nodes: the particle's nodes, ``K`` of them.
@@ -804,6 +807,10 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         # every p_i, through the pairwise face sums, for each node j (on the bunny's thin field
         # the contact stage's 3-tangent Jacobian cost 16-18x its step; docs/benchmarks.md)
         p = materialize(_safe_ratio(p, jnp.sum(p, axis=0)), always_true(nodes.affine))
+        # the choice carries no derivative: within ~1e-4 cells of a tie its slope is ~1e4 times
+        # any other's (a normal's tangent of 1e6 per unit of a fitted parameter, where the branch
+        # has ~1), so a Jacobian taken there was a spike that stopped fits at false floors
+        p = jax.lax.stop_gradient(p)
         # node j keeps sum_i p_i [N_i.N_j >= OPPOSED_COS]; cos[i][j] = N_i.N_j. The share is
         # stored once (with its tangents): w's tangent re-derived it, and p, per tangent
         share = symmetric_pair_sum([(c >= OPPOSED_COS).astype(w.dtype) for c in cos], p)

@@ -486,6 +486,61 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
     assert steps.max() < 0.02, (steps.max(), np.median(steps))  # 1/800 of the sweep moves it < 2 cm/s
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_reference_faces_switch_carries_no_steep_derivative(dim, tmp_path):
+    """Where a penetrated particle's reference face switches between two of the ring's facets,
+    the choice is soft over ~1e-4 cells (cpic.REFERENCE_TEMPERATURE): inside that sliver the
+    particle's normal moves between the two faces' normals. Its derivative there must not carry
+    the sliver's slope (~1e4 per cell): with it, a forward-mode tangent reached 6e17 m per decade
+    of the viscosity in a sysid fit (a spike that stopped the fit at a false floor, its κ a
+    decade off). The switch is found by bisection on the path of the continuity test above, to
+    a quarter of the way through the sliver."""
+    import importlib
+
+    sim = importlib.import_module("jaxmpm.step")
+    spec, dx = _thin_collider_spec(dim, "ring", tmp_path)
+    scene = load_scene(spec)
+    model, params, state = sim._start(scene.model, scene.params, None)
+    state = eqx.tree_at(lambda s: s.tag, state, jnp.ones_like(state.tag))  # it came from outside
+
+    def position(angle):  # a tenth of a cell inside the ring's outer face
+        radial = jnp.stack([jnp.cos(angle), jnp.sin(angle)]) if dim == 2 else \
+            jnp.stack([jnp.cos(angle), jnp.zeros_like(angle), jnp.sin(angle)])
+        return 0.5 + (4 * dx - 0.1 * dx) * radial
+
+    def contact_at(p):  # the particle's signed distance and normal
+        s = eqx.tree_at(lambda s: s.x, state, state.x.at[0].set(p))
+        c = sim.gather_contact(model, compute_stencil(model.grid, s.x), s)
+        return c.phi[0][0], c.normal[0][0]
+
+    normal_of_angle = jax.jit(lambda a: contact_at(position(a))[1])
+    angles = np.linspace(0.1, 0.1 + 2 * np.pi / 16, 801)
+    normals = np.asarray(jax.vmap(normal_of_angle)(jnp.asarray(angles, state.x.dtype)))
+    k = int(np.argmax(np.linalg.norm(np.diff(normals, axis=0), axis=-1)))
+    lo, hi = float(angles[k]), float(angles[k + 1])
+    n_lo, n_hi = np.asarray(normal_of_angle(lo)), np.asarray(normal_of_angle(hi))
+    assert np.linalg.norm(n_hi - n_lo) > 0.01  # a switch: the two faces' normals differ here
+
+    def progress(a):  # how far the normal at angle a is from the first face's towards the second's
+        n = np.asarray(normal_of_angle(a))
+        return np.linalg.norm(n - n_lo) / (np.linalg.norm(n - n_lo) + np.linalg.norm(n - n_hi))
+
+    for _ in range(40):  # to the angle a quarter of the way through the switch
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if progress(mid) < 0.25 else (lo, mid)
+    x_switch = position(jnp.asarray(0.5 * (lo + hi), state.x.dtype))
+    (_, normal), (dphi, dnormal) = jax.vmap(lambda e: jax.jvp(contact_at, (x_switch,), (e,)))(
+        jnp.eye(dim, dtype=state.x.dtype))
+    # inside the sliver: the normal is a blend, away from both faces' (so the soft choice acts here)
+    assert 0.1 < progress(0.5 * (lo + hi)) < 0.5
+    assert np.all(np.isfinite(np.asarray(dphi))) and np.all(np.isfinite(np.asarray(dnormal)))
+    # Here the faces are opposed (the ring's outer and inner walls), so the blended normal turns
+    # through 180 degrees within the sliver; without the choice's slope it turns only with the
+    # nodes' weights, by 1 / |sum of w n| per cell: 37 per cell at this point (1e5 with it).
+    assert float(jnp.linalg.norm(dphi)) < 3.0, np.asarray(dphi)
+    assert float(jnp.linalg.norm(dnormal)) * dx < 100.0, np.asarray(dnormal) * dx
+
+
 @pytest.mark.x64
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("kind", ["ring", "plate"])

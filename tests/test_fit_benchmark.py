@@ -74,3 +74,13 @@ def test_ci_preset_runs_end_to_end(tmp_path):
     assert len(rows) == 1 and "error" not in rows[0], rows
     assert rows[0]["errors"]["mu"] < 0.02 and rows[0]["converged"]
     assert (tmp_path / "table.md").read_text().count("| tracks | cpic | newtonian | box |") == 1
+
+
+def test_an_output_folder_holds_rows_of_one_dtype(tmp_path, capsys):
+    row = {"case": {"material": "newtonian", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"},
+           "key": "newtonian-box-0-tracks-cpic", "errors": {"mu": 0.0}, "dtype": "float32"}
+    (tmp_path / "results.jsonl").write_text(json.dumps(row) + "\n")
+    # refused before any case runs (the ci preset's case is not done in float64)
+    assert run_sysid_bench(["--preset", "ci", "--float64", "--out", str(tmp_path)]) == 2
+    assert "holds float32 rows; run float64 into another --out" in capsys.readouterr().err
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
