@@ -26,8 +26,11 @@ from the best point so far, up to ``max_dt_halvings`` times in all.
 
 **Uncertainty**: standard deviations from the Gauss–Newton covariance
 ``s² (JᵀJ)⁻¹`` at the optimum (``s² = RSS / (m − p)``,
-:func:`jaxmpm.identify.uncertainty.gauss_newton_covariance`), mapped to physical units; each
-parameter's from the last stage that fitted it.
+:func:`jaxmpm.identify.uncertainty.gauss_newton_covariance`), raised where the loss is rough
+to the smallest move it resolves (:func:`jaxmpm.identify.uncertainty.resolved_std`: the loss
+is probed at ± the std along each parameter's profile direction and further out until it
+changes as its derivative predicts; the stage's record then holds a ``resolution`` entry and
+a note says so), mapped to physical units; each parameter's from the last stage that fitted it.
 
 Parameters are named (``"mu"``, ``"kappa"``, ``"E"``, ``"nu"``, ``"yield_stress"``,
 ``"eta"``, ``"friction_angle"``, ``"density"``, ``"velocity"``, ``"gravity"``,
@@ -62,7 +65,7 @@ from .identify.parameters import (
 )
 from .identify.residuals import Objective, Residuals, build_objective, frames_needed, observation_cameras
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
-from .identify.uncertainty import gauss_newton_covariance, physical_std
+from .identify.uncertainty import gauss_newton_covariance, physical_std, resolved_std
 from .model import Model, Params
 from .observe import Observation, check_observation_matches, check_scene_compatible
 from .parameters import Log10
@@ -315,7 +318,8 @@ class FitResult:
     Attributes:
         params: the full parameter pytree at the estimate.
         values: fitted values by name (physical units).
-        std: standard deviations by name from the Gauss–Newton covariance (physical units).
+        std: standard deviations by name (physical units): the Gauss–Newton covariance's, or the
+            scale the loss resolves where it is rough (the module's "Uncertainty").
         loss: loss after each accepted iteration, all stages in order (first = initial).
         iterations: solver iterations taken (all stages).
         seconds: wall time.
@@ -351,11 +355,7 @@ class FitResult:
 
     def to_json(self) -> dict:
         """The ``fit.json`` contract (DESIGN §5.3) plus status fields."""
-
-        def plain(v):
-            v = np.asarray(v)
-            return v.item() if v.ndim == 0 else v.tolist()
-
+        plain = _plain
         return {
             "params": {k: plain(v) for k, v in self.values.items()},
             "std": {k: plain(v) for k, v in self.std.items()},
@@ -371,6 +371,16 @@ class FitResult:
             "notes": list(self.notes),
             "timing": json.loads(json.dumps(self.timing, default=float)),
         }
+
+
+def _plain(v):
+    """A number or nested list (JSON) from an array."""
+    v = np.asarray(v)
+    return v.item() if v.ndim == 0 else v.tolist()
+
+
+def _fmt_std(v) -> str:
+    return np.array2string(np.asarray(v, float), precision=3, floatmode="maxprec") if np.ndim(v) else f"{float(v):.3g}"
 
 
 # --------------------------------------------------------------------------- the fit
@@ -563,8 +573,20 @@ def fit(
         final_names = [n for n in snames if last_stage_of[n] == si]
         if c.uncertainty and final_names:
             t_std = time.perf_counter()
-            stage_std = _stage_std(objective, stage_residuals, {n: y_all[n] for n in snames}, outcome.jacobian)
+            stage_std, statistical, unresolved = _stage_std(objective, stage_residuals,
+                                                             {n: y_all[n] for n in snames}, outcome.jacobian)
             std.update({n: stage_std[n] for n in final_names})
+            rough = [n for n in final_names
+                     if np.any(np.asarray(stage_std[n]) > 3.0 * np.asarray(statistical[n])) or n in unresolved]
+            if rough:
+                record["resolution"] = {n: {"std": _plain(stage_std[n]), "statistical_std": _plain(statistical[n]),
+                                            "resolved": n not in unresolved} for n in rough}
+                notes.append(
+                    f"stage {si + 1}: the loss is rough below the scale of the Gauss-Newton std for "
+                    + ", ".join(f"{n} (std {_fmt_std(stage_std[n])} instead of {_fmt_std(statistical[n])}"
+                                f"{'; not resolved up to a move of 1 + |y|' if n in unresolved else ''})" for n in rough)
+                    + ": moves below that change the loss by jumps, not as its derivative predicts")
+                say(notes[-1])
             record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
         if replans_left and stage.until is not None and set(snames) == set(vel_names):
             replans_left -= 1
@@ -736,17 +758,30 @@ def better_start(residuals: Callable[[dict], Any], y0: dict, candidate: dict) ->
     return (trial if taken else dict(y0)), record
 
 
-def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobian=None) -> dict[str, np.ndarray]:
-    """Gauss–Newton standard deviations (physical units) of the variables ``y`` of one stage;
-    ``jacobian``: the solver's ``(rj, (r, J) at y or None)`` when it has them (no recompilation)."""
+def _stage_std(objective: Objective, residuals: StageResiduals, y: dict,
+               jacobian=None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[str]]:
+    """Standard deviations (physical units) of the variables ``y`` of one stage: the
+    Gauss–Newton ones, raised to the scale the loss resolves where it is rough
+    (:func:`jaxmpm.identify.uncertainty.resolved_std`). ``jacobian``: the solver's ``(rj, (r, J)
+    at y or None)`` when it has them (no recompilation).
+
+    Returns the standard deviations, the statistical ones (both by name) and the names the loss
+    did not resolve up to a move of ``1 + |y|`` (whose std is that cap)."""
     rj, at_y = jacobian if jacobian is not None else (None, None)
     flat, unravel = jax.flatten_util.ravel_pytree(y)
     if rj is None:
         rj = residuals_and_jacobian(residuals, y)[0]
     r, J = at_y if at_y is not None else (np.asarray(a, np.float64) for a in rj(flat))
     cov = gauss_newton_covariance(J, r, count=objective.count)
-    std_y = unravel(jnp.asarray(np.sqrt(np.clip(np.diag(cov), 0.0, None)), flat.dtype))
-    return physical_std(list(y), y, std_y)
+    statistical = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+    def loss_of(point):
+        return float(np.sum(np.asarray(rj(jnp.asarray(point, flat.dtype))[0], np.float64) ** 2))
+
+    std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
+    as_dict = lambda v: unravel(jnp.asarray(v, flat.dtype))  # noqa: E731
+    unresolved = [n for n, ok in as_dict(resolved.astype(float)).items() if not np.all(np.asarray(ok) > 0.5)]
+    return physical_std(list(y), y, as_dict(std)), physical_std(list(y), y, as_dict(statistical)), unresolved
 
 
 def fit_scene(scene, observation: Observation, names: Sequence[str] | None = None, config: FitConfig = FitConfig(),
