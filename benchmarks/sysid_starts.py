@@ -9,7 +9,7 @@ answers scatter, and their spread is the precision the case really has. Rows (th
 plus ``start_offset``) are appended to ``--out``.
 
     python benchmarks/sysid_starts.py --case newtonian-small-0-tracks-cpic --offsets -0.5,-0.25,0,0.25,0.5 \\
-        [--float64] --out starts.jsonl
+        [--float64] [--resolution] --out starts.jsonl
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ def main(argv=None) -> int:
     parser.add_argument("--preset", default="reduced", choices=("ci", "reduced", "full"))
     parser.add_argument("--offsets", default="-0.5,0,0.5", help="comma-separated decades added to the log10 guesses")
     parser.add_argument("--float64", action="store_true")
+    parser.add_argument("--resolution", action="store_true", help="FitConfig.resolution: the std the loss resolves")
     parser.add_argument("--out", required=True, help="JSON lines, one row per start")
     args = parser.parse_args(argv)
     offsets = [float(s) for s in args.offsets.split(",") if s.strip()]
@@ -41,7 +42,7 @@ def main(argv=None) -> int:
     for offset in offsets:
         guess = {k: v * 10.0**offset if k in LOG10_PARAMS else v for k, v in INITIAL_GUESS[case.material].items()}
         print(f"start {offset:+.3g} decades: {guess}", file=sys.stderr, flush=True)
-        row = run_case(case, preset, dtype, guess=guess)
+        row = run_case(case, preset, dtype, guess=guess, resolution=args.resolution)
         row["start_offset"] = offset
         with open(args.out, "a") as fh:
             fh.write(json.dumps(row) + "\n")

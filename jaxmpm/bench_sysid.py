@@ -260,12 +260,13 @@ def code_version() -> str:
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
-def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None) -> dict:
+def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None,
+             resolution: bool = False) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row.
 
     ``dtype``: ``"float32"`` or ``"float64"`` (enables JAX's x64 mode), for the ground truth and
     the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
-    guesses, :data:`INITIAL_GUESS`)."""
+    guesses, :data:`INITIAL_GUESS`). ``resolution``: :attr:`jaxmpm.fit.FitConfig.resolution`."""
     import jax
 
     if dtype == "float64":
@@ -309,7 +310,8 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
     names = FIT_NAMES[case.material] + ["velocity"]
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
-    config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None)
+    config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None,
+                       resolution=resolution)
     result = fit(start.model, start.params, obs, names, config, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
@@ -334,6 +336,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
         "substeps": int(result.substeps),
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
         "dtype": dtype,
+        "resolution": resolution,
         "code": code_version(),
     }
 
@@ -342,18 +345,19 @@ def _child(argv: list[str]) -> None:
     case = Case(**json.loads(argv[0]))
     preset = Preset(**json.loads(argv[1]))
     try:
-        row = run_case(case, preset, argv[2])
+        row = run_case(case, preset, argv[2], resolution=argv[3] == "resolution")
     except Exception as err:  # a failed case is a result too
         row = {"case": asdict(case), "key": case.key, "error": f"{type(err).__name__}: {err}"}
     row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print("SYSID-JSON " + json.dumps(row))
 
 
-def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path, dtype: str = "float32") -> dict:
+def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path, dtype: str = "float32",
+               resolution: bool = False) -> dict:
     """Run one case in a subprocess; its terminal output (the fit's progress) streams to ``log``,
     so a case that times out or crashes leaves its progress behind."""
     cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench_sysid import _child; _child(sys.argv[1:])",
-           json.dumps(asdict(case)), json.dumps(asdict(preset)), dtype]
+           json.dumps(asdict(case)), json.dumps(asdict(preset)), dtype, "resolution" if resolution else "statistical"]
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as fh:
         try:
@@ -439,10 +443,11 @@ def targets(rows: list[dict]) -> str:
 
 
 def sigma_check(rows: list[dict]) -> str:
-    """How far the truth lies from each estimate in units of its reported Gauss–Newton σ,
-    ``|estimate − truth| / σ`` per fitted parameter, by supervision, mode and convergence:
-    count, median, how many within 3σ. (The benchmark's observations are noise-free, so σ
-    reflects round-off and misfit, not an error bar; see docs/fitting.md.)"""
+    """How far the truth lies from each estimate in units of its reported σ, ``|estimate −
+    truth| / σ`` per fitted parameter, by supervision, mode, convergence and the kind of σ
+    (Gauss–Newton, or resolved: ``--resolution``): count, median, how many within 3σ. (The
+    benchmark's observations are noise-free, so the Gauss–Newton σ reflects round-off and
+    misfit, not an error bar; see docs/fitting.md.)"""
     groups: dict[tuple, list[float]] = {}
     for r in rows:
         if "error" in r:
@@ -452,12 +457,13 @@ def sigma_check(rows: list[dict]) -> str:
             if sd is None or not np.isscalar(sd) or not sd > 0:
                 continue
             z = abs(float(r["estimate"][p]) - float(r["truth"][p])) / float(sd)
-            key = (r["case"]["supervision"], r["case"]["mode"], "converged" if r["converged"] else "not converged")
+            key = (r["case"]["supervision"], r["case"]["mode"], "converged" if r["converged"] else "not converged",
+                   ", resolved σ" if r.get("resolution") else "")
             groups.setdefault(key, []).append(z)
     out = []
-    for (sup, mode, conv), zs in sorted(groups.items()):
+    for (sup, mode, conv, kind), zs in sorted(groups.items()):
         z = np.asarray(zs)
-        out.append(f"* {sup}, {mode}, {conv}: {len(z)} parameter estimates, truth at a median of "
+        out.append(f"* {sup}, {mode}, {conv}{kind}: {len(z)} parameter estimates, truth at a median of "
                    f"{np.median(z):.3g} σ (max {z.max():.3g}); {int(np.sum(z <= 3))} within 3σ")
     return "\n".join(out)
 
@@ -475,6 +481,9 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     parser.add_argument("--float64", action="store_true",
                         help="simulate the ground truths and fit in float64 (to tell a rough loss from rounding); "
                              "an output folder holds rows of one dtype")
+    parser.add_argument("--resolution", action="store_true",
+                        help="standard deviations raised to the scale each loss resolves (FitConfig.resolution; "
+                             "the σ check then tests those)")
     args = parser.parse_args(argv)
     dtype = "float64" if args.float64 else "float32"
     preset, cases = preset_cases(args.preset)
@@ -507,7 +516,7 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
           file=sys.stderr, flush=True)
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
-        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype)
+        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype, args.resolution)
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")

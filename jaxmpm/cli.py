@@ -192,7 +192,7 @@ def cmd_fit(args) -> int:
 
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
-                       velocity_until=args.velocity_until, scan=scan)
+                       velocity_until=args.velocity_until, scan=scan, resolution=args.resolution)
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     write_json(Path(args.out), payload)
@@ -349,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scan", default=None, metavar="DECADES",
                    help="before fitting each log10 parameter, try its guess x 10^d for these d and start from the "
                         "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls; default: no scan)")
+    p.add_argument("--resolution", action="store_true",
+                   help="raise each std to the scale the loss resolves where it is rough (noise-free data, CPIC "
+                        "contact): two loss evaluations per parameter and try")
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.add_argument("--profile", action="store_true",

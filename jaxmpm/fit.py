@@ -26,11 +26,12 @@ from the best point so far, up to ``max_dt_halvings`` times in all.
 
 **Uncertainty**: standard deviations from the Gauss–Newton covariance
 ``s² (JᵀJ)⁻¹`` at the optimum (``s² = RSS / (m − p)``,
-:func:`jaxmpm.identify.uncertainty.gauss_newton_covariance`), raised where the loss is rough
-to the smallest move it resolves (:func:`jaxmpm.identify.uncertainty.resolved_std`: the loss
-is probed at ± the std along each parameter's profile direction and further out until it
-changes as its derivative predicts; the stage's record then holds a ``resolution`` entry and
-a note says so), mapped to physical units; each parameter's from the last stage that fitted it.
+:func:`jaxmpm.identify.uncertainty.gauss_newton_covariance`), with ``resolution=True`` raised
+where the loss is rough to the smallest move it resolves
+(:func:`jaxmpm.identify.uncertainty.resolved_std`: the loss is probed at ± the std along each
+parameter's profile direction and further out until it changes as its curvature predicts;
+the stage's record then holds a ``resolution`` entry and a note says so), mapped to physical
+units; each parameter's from the last stage that fitted it.
 
 Parameters are named (``"mu"``, ``"kappa"``, ``"E"``, ``"nu"``, ``"yield_stress"``,
 ``"eta"``, ``"friction_angle"``, ``"density"``, ``"velocity"``, ``"gravity"``,
@@ -130,6 +131,10 @@ class FitConfig:
         refine_velocity: also refit the velocity in the later stages.
         renderer, num_pixels, probes, colors: image and probe options of the objective.
         uncertainty: compute the Gauss–Newton standard deviations.
+        resolution: raise each standard deviation to the scale the loss resolves where it is
+            rough (:func:`jaxmpm.identify.uncertainty.resolved_std`): for noise-free or
+            CPIC fits, whose Gauss–Newton std only measures round-off and jumps. Two loss
+            evaluations per parameter and try (on the sysid track cases, +3 to +30 s a fit).
         scan: decade offsets (e.g. ``(-1, 1, 2)``) tried before the first stage that fits a
             scalar log10 parameter (viscosity, moduli, yield stress): one parameter at a
             time, each at its starting value × 10^offset, the others at the best so far;
@@ -167,6 +172,7 @@ class FitConfig:
     probes: dict | None = None
     colors: Any = "auto"
     uncertainty: bool = True
+    resolution: bool = False
     scan: tuple[float, ...] | None = None
     free_fall_start: bool = True
 
@@ -319,7 +325,8 @@ class FitResult:
         params: the full parameter pytree at the estimate.
         values: fitted values by name (physical units).
         std: standard deviations by name (physical units): the Gauss–Newton covariance's, or the
-            scale the loss resolves where it is rough (the module's "Uncertainty").
+            scale the loss resolves where it is rough (``FitConfig.resolution``; the module's
+            "Uncertainty").
         loss: loss after each accepted iteration, all stages in order (first = initial).
         iterations: solver iterations taken (all stages).
         seconds: wall time.
@@ -574,7 +581,8 @@ def fit(
         if c.uncertainty and final_names:
             t_std = time.perf_counter()
             stage_std, statistical, unresolved = _stage_std(objective, stage_residuals,
-                                                             {n: y_all[n] for n in snames}, outcome.jacobian)
+                                                             {n: y_all[n] for n in snames}, outcome.jacobian,
+                                                             c.resolution)
             std.update({n: stage_std[n] for n in final_names})
             rough = [n for n in final_names
                      if np.any(np.asarray(stage_std[n]) > 3.0 * np.asarray(statistical[n])) or n in unresolved]
@@ -758,12 +766,12 @@ def better_start(residuals: Callable[[dict], Any], y0: dict, candidate: dict) ->
     return (trial if taken else dict(y0)), record
 
 
-def _stage_std(objective: Objective, residuals: StageResiduals, y: dict,
-               jacobian=None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[str]]:
+def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobian=None,
+               resolution: bool = False) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[str]]:
     """Standard deviations (physical units) of the variables ``y`` of one stage: the
-    Gauss–Newton ones, raised to the scale the loss resolves where it is rough
-    (:func:`jaxmpm.identify.uncertainty.resolved_std`). ``jacobian``: the solver's ``(rj, (r, J)
-    at y or None)`` when it has them (no recompilation).
+    Gauss–Newton ones, with ``resolution`` raised to the scale the loss resolves where it is
+    rough (:func:`jaxmpm.identify.uncertainty.resolved_std`). ``jacobian``: the solver's ``(rj,
+    (r, J) at y or None)`` when it has them (no recompilation).
 
     Returns the standard deviations, the statistical ones (both by name) and the names the loss
     did not resolve up to a move of ``1 + |y|`` (whose std is that cap)."""
@@ -778,7 +786,9 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict,
     def loss_of(point):
         return float(np.sum(np.asarray(rj(jnp.asarray(point, flat.dtype))[0], np.float64) ** 2))
 
-    std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
+    std, resolved = statistical, np.ones(statistical.shape, bool)
+    if resolution:
+        std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
     as_dict = lambda v: unravel(jnp.asarray(v, flat.dtype))  # noqa: E731
     unresolved = [n for n, ok in as_dict(resolved.astype(float)).items() if not np.all(np.asarray(ok) > 0.5)]
     return physical_std(list(y), y, as_dict(std)), physical_std(list(y), y, as_dict(statistical)), unresolved

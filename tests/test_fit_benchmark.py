@@ -64,6 +64,9 @@ def test_sigma_check_counts_the_truth_within_three_sigma():
     text = sigma_check([row, {"case": case, "key": "bad", "error": "boom"}])
     # mu: 2 sigma away, kappa: 5 sigma away; the velocity (no truth) is not counted
     assert text == "* tracks, cpic, converged: 2 parameter estimates, truth at a median of 3.5 σ (max 5); 1 within 3σ"
+    resolved = dict(row, key="r", resolution=True, std={"mu": 4.0, "kappa": 1e4})
+    assert sigma_check([row, resolved]).splitlines()[1] == (
+        "* tracks, cpic, converged, resolved σ: 2 parameter estimates, truth at a median of 0.5 σ (max 0.5); 2 within 3σ")
 
 
 @pytest.mark.slow  # the harness end to end (90 s here); its parts are tested above

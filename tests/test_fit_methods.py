@@ -142,6 +142,19 @@ def test_truth_lies_within_a_few_sigma_with_noisy_tracks():
     assert s_mu < 0.1 * mu
 
 
+def test_the_resolved_std_of_a_smooth_noisy_fit_is_its_gauss_newton_std():
+    """With 3 mm noise the loss is smooth at the scale of its std, so ``resolution=True``
+    (which probes the loss there) keeps the Gauss–Newton std, and no stage records a rough loss."""
+    spec = _spec(frames=6)
+    noisy = _observe(spec, noise=3e-3, seed=1)
+    start = load_scene(_spec(mu=20.0, frames=6, velocity=(0.3, -0.8)))
+    plain, resolved = (fit(start.model, start.params, noisy, ["mu", "velocity"], FitConfig(stages=None, resolution=r))
+                       for r in (False, True))
+    for name in ("mu", "velocity"):
+        np.testing.assert_array_equal(resolved.std[name], plain.std[name])
+    assert not any("resolution" in s for s in resolved.stages) and not resolved.notes
+
+
 def test_contact_redetected_with_the_fitted_velocity():
     """Without per-particle tracks the contact comes from a rollout of the initial guess
     (dropped from rest, it lands later than the truth thrown downwards). The fit therefore

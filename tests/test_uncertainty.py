@@ -4,7 +4,7 @@ Gauss–Newton model, the scale at which it starts to where the loss jumps below
 import numpy as np
 import pytest
 
-from jaxmpm.identify.uncertainty import RESOLUTION_TOLERANCE, gauss_newton_covariance, resolved_std
+from jaxmpm.identify.uncertainty import RESOLUTION_FACTOR, gauss_newton_covariance, resolved_std
 
 
 def _problem(seed=0, correlated=False):
@@ -50,7 +50,7 @@ def test_rounding_of_the_probe_points_does_not_raise_a_smooth_std():
 def test_a_loss_with_jumps_is_resolved_only_where_its_curvature_beats_them():
     """The smooth loss plus jumps of size B on a lattice of spacing w in both variables (each
     cell a pseudo-random level): a move h along variable i changes the model by h^2 / a_ii
-    (a = (JᵀJ)⁻¹), so the loss follows the model only from h ~ sqrt(B a_ii / tol) on."""
+    (a = (JᵀJ)⁻¹), so the loss follows the model only from h ~ sqrt(B a_ii) on."""
     J, r, y_hat = _problem()
     std = _std(J, r)
     B, w = 1e-2, 1e-5
@@ -62,7 +62,7 @@ def test_a_loss_with_jumps_is_resolved_only_where_its_curvature_beats_them():
 
     out, resolved = resolved_std(rough, y_hat, r, J, std, dtype=np.float64)
     a = np.diag(np.linalg.inv(J.T @ J))
-    crossover = np.sqrt(B * a / RESOLUTION_TOLERANCE)
+    crossover = np.sqrt(B * a)
     assert resolved.all()
     assert np.all(out > 3 * std), (out, std)  # the statistical std claims far more than the loss resolves
     assert np.all(out > 0.3 * crossover) and np.all(out < 10 * crossover), (out, crossover)

@@ -295,7 +295,8 @@ def _lm_message(how: str, iterations: int, max_steps: int) -> str:
                   "determined directions are known only to their std)"),
         "rough": (f"stalled after {n} away from a stationary point: the Gauss-Newton step is "
                   "still large but neither the trust region nor a line search along it lowers the loss (a rough "
-                  "loss at this precision; try float64, another starting point or method='adam')"),
+                  "loss at this precision; try another starting point or method='adam', or float64 where the "
+                  "roughness is round-off rather than the model's own jumps such as CPIC's contact decisions)"),
         "unstable": f"stalled after {n}: the trial steps made the simulation unstable",
         "creep": (f"converged in {n} (the last step lowered the loss by less than "
                   f"{100 * CREEP:g} % and the Gauss-Newton step there is within tolerance: a stationary point at this "

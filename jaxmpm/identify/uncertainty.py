@@ -49,14 +49,15 @@ def gauss_newton_covariance(J: np.ndarray, r: np.ndarray, *, groups: np.ndarray 
     return float(r @ r) / max(n - p, 1) * A_inv
 
 
-#: The loss "follows its Gauss–Newton model" at a move ``δ`` when the measured change differs from
-#: the model's ``|r + J δ|² − |r|²`` by at most this fraction of the model's curvature term
-#: ``δᵀ JᵀJ δ`` (at both signs of the move).
-RESOLUTION_TOLERANCE = 0.5
+#: The loss "follows its Gauss–Newton model" at a move ``±δ`` when the mean of its two measured
+#: changes is within this factor of the model's curvature term ``δᵀ JᵀJ δ`` (either way: the
+#: model's linear terms cancel in the mean, and a loss that grows faster than its quadratic
+#: further out still resolves the move).
+RESOLUTION_FACTOR = 2.0
 
 
 def resolved_std(loss_of: Callable[[np.ndarray], float], y: np.ndarray, r: np.ndarray, J: np.ndarray,
-                 std: np.ndarray, *, cap: float = 1.0, tol: float = RESOLUTION_TOLERANCE,
+                 std: np.ndarray, *, cap: float = 1.0, factor: float = RESOLUTION_FACTOR,
                  dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
     """Per variable, the smallest move the loss resolves: its statistical standard deviation
     where the loss follows the Gauss–Newton model at that scale, else the scale at which it
@@ -69,16 +70,18 @@ def resolved_std(loss_of: Callable[[np.ndarray], float], y: np.ndarray, r: np.nd
     within that scale (a sysid case from four starting points: μ 0.0005 to 0.009 decades off,
     its statistical σ 2.6·10⁻⁴ decades). So each variable ``i`` is moved along its profile
     direction ``d_i = (JᵀJ)⁻¹ e_i / (JᵀJ)⁻¹_ii`` (the others follow it as their correlation
-    asks) by ``±h`` from its standard deviation up, and the loss's measured change is compared
-    with the model's; the first ``h`` at which both signs agree within ``tol`` is the resolved
-    scale. On a smooth loss that is the first ``h`` tried, and the standard deviation stands.
+    asks) by ``±h``, from its standard deviation up, and the mean of the loss's two measured
+    changes is compared with the model's curvature term; the first ``h`` at which they agree
+    within ``factor`` is the resolved scale. On a smooth loss that is the first ``h`` tried, and
+    the standard deviation stands. Each try costs two evaluations of ``loss_of``; the scale
+    grows by the factor the disagreement asks for (between 2 and 100 times).
 
     Arguments:
         loss_of: the loss (sum of squared residuals) at a point ``(P,)`` of ``dtype``.
         y: ``(P,)`` the optimum (optimisation units); ``r (M,)`` and ``J (M, P)`` there.
         std: ``(P,)`` the statistical standard deviations (square roots of the covariance's diagonal).
         cap: the largest move tried, in units of ``1 + |y_i|``.
-        tol: :data:`RESOLUTION_TOLERANCE`.
+        factor: :data:`RESOLUTION_FACTOR`.
         dtype: the points' dtype (the moves are compared as rounded to it).
 
     Returns:
@@ -100,25 +103,22 @@ def resolved_std(loss_of: Callable[[np.ndarray], float], y: np.ndarray, r: np.nd
         h = min(max(out[i], 1e-7 * (1.0 + abs(y[i]))), top)
         raised = False
         while True:
-            worst = 0.0
+            changes, curvature = [], 0.0
             for sign in (1.0, -1.0):
                 point = np.asarray(y + sign * h * d, dtype)
                 move = point.astype(np.float64) - y  # as rounded
-                curvature = float(move @ A @ move)
-                measured = float(loss_of(point)) - f0
-                if not (np.isfinite(measured) and curvature > 0):
-                    worst = np.inf
-                    break
-                model = float(np.sum((r + J @ move) ** 2)) - f0
-                worst = max(worst, abs(measured - model) / curvature)
-            if worst <= tol:
+                curvature += 0.5 * float(move @ A @ move)
+                changes.append(float(loss_of(point)) - f0)
+            mean = 0.5 * sum(changes)
+            ratio = mean / curvature if curvature > 0 and np.isfinite(mean) else np.nan
+            if 1.0 / factor <= ratio <= factor:
                 break
             if h >= top:
                 resolved[i] = False
                 break
-            # the jumps' size grows slower than the curvature term (~h^2): aim where it would win
-            grow = np.sqrt(worst / tol) if np.isfinite(worst) else 10.0
-            h = min(h * float(np.clip(grow, np.sqrt(10.0), 100.0)), top)
+            # jumps of a roughly constant size against a curvature term ~h^2: aim where it would win
+            grow = np.sqrt(abs(ratio) / factor) if np.isfinite(ratio) and ratio != 0 else 10.0
+            h = min(h * float(np.clip(grow, 2.0, 100.0)), top)
             raised = True
         if raised:
             out[i] = max(out[i], h)
