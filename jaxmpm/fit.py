@@ -782,16 +782,17 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
     r, J = at_y if at_y is not None else (np.asarray(a, np.float64) for a in rj(flat))
     cov = gauss_newton_covariance(J, r, count=objective.count)
     statistical = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    as_dict = lambda v: unravel(jnp.asarray(v, flat.dtype))  # noqa: E731
+    gauss_newton = physical_std(list(y), y, as_dict(statistical))
+    if not resolution:
+        return gauss_newton, gauss_newton, []
 
     def loss_of(point):
         return float(np.sum(np.asarray(rj(jnp.asarray(point, flat.dtype))[0], np.float64) ** 2))
 
-    std, resolved = statistical, np.ones(statistical.shape, bool)
-    if resolution:
-        std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
-    as_dict = lambda v: unravel(jnp.asarray(v, flat.dtype))  # noqa: E731
+    std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
     unresolved = [n for n, ok in as_dict(resolved.astype(float)).items() if not np.all(np.asarray(ok) > 0.5)]
-    return physical_std(list(y), y, as_dict(std)), physical_std(list(y), y, as_dict(statistical)), unresolved
+    return physical_std(list(y), y, as_dict(std)), gauss_newton, unresolved
 
 
 def fit_scene(scene, observation: Observation, names: Sequence[str] | None = None, config: FitConfig = FitConfig(),

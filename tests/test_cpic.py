@@ -622,7 +622,8 @@ def test_jacobian_of_a_fall_onto_a_thin_plate_matches_central_differences(dim, t
 
 def _surface_estimate_reference(nodes, dx):
     """:func:`jaxmpm.cpic.surface_estimate` with the opposed-face choice written with whole
-    ``(K, K, N)`` arrays of pairwise cosines (as it was before session 28)."""
+    ``(K, K, N)`` arrays of pairwise cosines (as it was before session 28; the choice's shares
+    without a derivative, as since session 32)."""
     from jaxmpm import cpic
 
     carried = nodes.node_sd - jnp.sum(nodes.normal * nodes.offset, axis=-1)
@@ -635,7 +636,7 @@ def _surface_estimate_reference(nodes, dx):
     live = nodes.affine & (w > 0) & jnp.isfinite(key)
     top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
     p = jnp.where(live, w * jnp.exp(jnp.where(live, key - top, 0.0)), 0.0)
-    p = cpic._safe_ratio(p, jnp.sum(p, axis=0))
+    p = jax.lax.stop_gradient(cpic._safe_ratio(p, jnp.sum(p, axis=0)))  # the choice carries no derivative
     w = w * jnp.sum(jnp.where(cos >= cpic.OPPOSED_COS, p[:, None], 0.0), axis=0)
     sw = jnp.sum(w, axis=0)
     near = sw > 0

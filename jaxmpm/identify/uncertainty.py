@@ -67,8 +67,8 @@ def resolved_std(loss_of: Callable[[np.ndarray], float], y: np.ndarray, r: np.nd
     standard deviations. A rough loss is not: CPIC's discrete decisions (a node switching side,
     the reference face switching) make it jump, in float64 as in float32, and below some scale
     the jumps, not the curvature, decide which parameters fit best. There a fit lands anywhere
-    within that scale (a sysid case from four starting points: μ 0.0005 to 0.009 decades off,
-    its statistical σ 2.6·10⁻⁴ decades). So each variable ``i`` is moved along its profile
+    within that scale (a sysid case from four starting points, with CPIC's reference face still
+    chosen hard: μ 0.0005 to 0.009 decades off, its statistical σ 2.6·10⁻⁴ decades). So each variable ``i`` is moved along its profile
     direction ``d_i = (JᵀJ)⁻¹ e_i / (JᵀJ)⁻¹_ii`` (the others follow it as their correlation
     asks) by ``±h``, from its standard deviation up, and the mean of the loss's two measured
     changes is compared with the model's curvature term; the first ``h`` at which they agree
@@ -116,7 +116,8 @@ def resolved_std(loss_of: Callable[[np.ndarray], float], y: np.ndarray, r: np.nd
             if h >= top:
                 resolved[i] = False
                 break
-            # jumps of a roughly constant size against a curvature term ~h^2: aim where it would win
+            # jumps of a roughly constant size against a curvature term ~h^2: aim where it would
+            # win (a loss that rose too little grows the move by the least step, 2)
             grow = np.sqrt(abs(ratio) / factor) if np.isfinite(ratio) and ratio != 0 else 10.0
             h = min(h * float(np.clip(grow, 2.0, 100.0)), top)
             raised = True
