@@ -41,25 +41,20 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from jaxmpm.bench_sysid import preset_cases, scene_spec, truth_values
+    from jaxmpm.bench_sysid import truth_scene
     from jaxmpm.identify.parameters import with_values
     from jaxmpm.model import initial_state
-    from jaxmpm.scene import load_scene
     from jaxmpm.state import compute_stencil
     from jaxmpm.step import gather_contact, step
 
-    preset, cases = preset_cases(args.preset)
-    matches = [c for c in cases if c.key == args.case]
-    if not matches:
-        parser.error(f"no case {args.case!r} in preset {args.preset}")
-    case = matches[0]
+    try:
+        scene, case, truth = truth_scene(args.case, args.preset, jnp.float64 if args.float64 else jnp.float32)
+    except ValueError as err:
+        parser.error(str(err))
     if case.mode != "cpic":
         parser.error("the case must use CPIC (its decisions are what this compares)")
-    truth = truth_values(case.material, case.index)
     if args.name not in truth:
         parser.error(f"--name must be one of {sorted(truth)}")
-    scene = load_scene(scene_spec(case, preset, truth, (0.0, -1.0, 0.0)),
-                       dtype=jnp.float64 if args.float64 else jnp.float32)
     model = scene.model
 
     @jax.jit

@@ -48,21 +48,17 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from jaxmpm.bench_sysid import preset_cases, scene_spec, truth_values
+    from jaxmpm.bench_sysid import truth_scene
     from jaxmpm.identify.parameters import LOG10_PARAMS, with_values
-    from jaxmpm.scene import load_scene
     from jaxmpm.step import simulate
 
-    preset, cases = preset_cases(args.preset)
-    matches = [c for c in cases if c.key == args.case]
-    if not matches:
-        parser.error(f"no case {args.case!r} in preset {args.preset} (jaxmpm bench sysid --preset {args.preset} --list)")
-    case = matches[0]
-    truth = truth_values(case.material, case.index)
+    dtype = jnp.float64 if args.float64 else jnp.float32
+    try:
+        scene, case, truth = truth_scene(args.case, args.preset, dtype)
+    except ValueError as err:
+        parser.error(str(err))
     if args.name not in truth or args.name not in LOG10_PARAMS:
         parser.error(f"--name must be a log10 parameter of {case.material}: {sorted(set(truth) & LOG10_PARAMS)}")
-    dtype = jnp.float64 if args.float64 else jnp.float32
-    scene = load_scene(scene_spec(case, preset, truth, (0.0, -1.0, 0.0)), dtype=dtype)
     model = scene.model
     times = np.arange(model.frames) * model.frame_dt
     frames = np.nonzero(times <= (np.inf if args.until is None else args.until + 1e-9))[0]

@@ -30,14 +30,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     offsets = [float(s) for s in args.offsets.split(",") if s.strip()]
 
-    from jaxmpm.bench_sysid import INITIAL_GUESS, preset_cases, run_case
+    from jaxmpm.bench_sysid import INITIAL_GUESS, find_case, run_case
     from jaxmpm.identify.parameters import LOG10_PARAMS
 
-    preset, cases = preset_cases(args.preset)
-    matches = [c for c in cases if c.key == args.case]
-    if not matches:
-        parser.error(f"no case {args.case!r} in preset {args.preset} (jaxmpm bench sysid --preset {args.preset} --list)")
-    case = matches[0]
+    try:
+        preset, case = find_case(args.case, args.preset)
+    except ValueError as err:
+        parser.error(str(err))
     dtype = "float64" if args.float64 else "float32"
     for offset in offsets:
         guess = {k: v * 10.0**offset if k in LOG10_PARAMS else v for k, v in INITIAL_GUESS[case.material].items()}

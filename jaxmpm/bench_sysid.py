@@ -136,6 +136,26 @@ def preset_cases(name: str) -> tuple[Preset, list[Case]]:
     raise ValueError(f"unknown preset {name!r} (ci, reduced, full)")
 
 
+def find_case(key: str, preset_name: str = "reduced") -> tuple[Preset, Case]:
+    """The preset and the case of key ``key`` (``jaxmpm bench sysid --list``); ValueError if absent."""
+    preset, cases = preset_cases(preset_name)
+    for case in cases:
+        if case.key == key:
+            return preset, case
+    raise ValueError(f"no case {key!r} in preset {preset_name} (jaxmpm bench sysid --preset {preset_name} --list)")
+
+
+def truth_scene(key: str, preset_name: str = "reduced", dtype=None):
+    """The ground-truth :class:`~jaxmpm.scene.Scene` of case ``key`` (its true parameters, thrown
+    at 1 m/s downwards), its case and its true values; for the diagnostics in ``benchmarks/``."""
+    from .scene import load_scene
+
+    preset, case = find_case(key, preset_name)
+    truth = truth_values(case.material, case.index)
+    kwargs = {} if dtype is None else {"dtype": dtype}
+    return load_scene(scene_spec(case, preset, truth, (0.0, -1.0, 0.0)), **kwargs), case, truth
+
+
 # --------------------------------------------------------------------------- scenes
 
 

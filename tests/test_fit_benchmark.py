@@ -6,7 +6,7 @@ import json
 import jax.numpy as jnp
 import pytest
 
-from jaxmpm.bench_sysid import (Case, errors, preset_cases, run_sysid_bench, scene_spec, sigma_check, summarise, targets,
+from jaxmpm.bench_sysid import (Case, errors, find_case, preset_cases, run_sysid_bench, scene_spec, sigma_check, summarise, targets,
                                 truth_values)
 from jaxmpm.scene import load_scene
 
@@ -87,3 +87,10 @@ def test_an_output_folder_holds_rows_of_one_dtype(tmp_path, capsys):
     assert run_sysid_bench(["--preset", "ci", "--float64", "--out", str(tmp_path)]) == 2
     assert "holds float32 rows; run float64 into another --out" in capsys.readouterr().err
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
+
+
+def test_find_case_by_key():
+    preset, case = find_case("newtonian-small-0-tracks-cpic")
+    assert case == Case("newtonian", "small", 0, "tracks", "cpic") and preset == preset_cases("reduced")[0]
+    with pytest.raises(ValueError, match="jaxmpm bench sysid --preset ci --list"):
+        find_case("newtonian-small-0-tracks-cpic", "ci")
