@@ -29,6 +29,10 @@ def main(argv=None) -> int:
     parser.add_argument("--out", required=True, help="JSON lines, one row per start")
     args = parser.parse_args(argv)
     offsets = [float(s) for s in args.offsets.split(",") if s.strip()]
+    if args.float64:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
 
     from jaxmpm.bench_sysid import INITIAL_GUESS, find_case, run_case
     from jaxmpm.identify.parameters import LOG10_PARAMS

@@ -284,15 +284,15 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
              resolution: bool = False) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row.
 
-    ``dtype``: ``"float32"`` or ``"float64"`` (enables JAX's x64 mode), for the ground truth and
-    the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
+    ``dtype``: ``"float32"`` or ``"float64"`` (which needs JAX's x64 mode, enabled by the
+    caller: the harness's subprocess does), for the ground truth and the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
     guesses, :data:`INITIAL_GUESS`). ``resolution``: :attr:`jaxmpm.fit.FitConfig.resolution`."""
     import jax
 
-    if dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
-    elif dtype != "float32":
+    if dtype not in ("float32", "float64"):
         raise ValueError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    if dtype == "float64" and not jax.config.jax_enable_x64:
+        raise ValueError("dtype 'float64' needs jax.config.update('jax_enable_x64', True) first")
     import jax.numpy as jnp
 
     jdtype = jnp.dtype(dtype)
@@ -364,6 +364,10 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
 def _child(argv: list[str]) -> None:
     case = Case(**json.loads(argv[0]))
     preset = Preset(**json.loads(argv[1]))
+    if argv[2] == "float64":  # this subprocess is the harness's: its precision is the run's choice
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
     try:
         row = run_case(case, preset, argv[2], resolution=argv[3] == "resolution")
     except Exception as err:  # a failed case is a result too

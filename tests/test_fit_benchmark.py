@@ -6,8 +6,8 @@ import json
 import jax.numpy as jnp
 import pytest
 
-from jaxmpm.bench_sysid import (Case, errors, find_case, preset_cases, run_sysid_bench, scene_spec, sigma_check, summarise, targets,
-                                truth_values)
+from jaxmpm.bench_sysid import (Case, errors, find_case, preset_cases, run_case, run_sysid_bench, scene_spec,
+                                sigma_check, summarise, targets, truth_values)
 from jaxmpm.scene import load_scene
 
 
@@ -94,3 +94,13 @@ def test_find_case_by_key():
     assert case == Case("newtonian", "small", 0, "tracks", "cpic") and preset == preset_cases("reduced")[0]
     with pytest.raises(ValueError, match="jaxmpm bench sysid --preset ci --list"):
         find_case("newtonian-small-0-tracks-cpic", "ci")
+
+
+def test_a_float64_case_needs_x64_from_its_caller():
+    """run_case does not switch JAX's precision itself (the harness's subprocess does): without
+    x64 a float64 request is refused before any simulation."""
+    preset, case = find_case("newtonian-small-0-tracks-cpic")
+    with pytest.raises(ValueError, match="jax_enable_x64"):
+        run_case(case, preset, "float64")
+    with pytest.raises(ValueError, match="'float32' or 'float64'"):
+        run_case(case, preset, "float16")
