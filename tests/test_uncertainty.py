@@ -4,7 +4,7 @@ Gauss–Newton model, the scale at which it starts to where the loss jumps below
 import numpy as np
 import pytest
 
-from jaxmpm.identify.uncertainty import RESOLUTION_FACTOR, gauss_newton_covariance, resolved_std
+from jaxmpm.identify.uncertainty import gauss_newton_covariance, resolved_std
 
 
 def _problem(seed=0, correlated=False):
