@@ -281,12 +281,14 @@ def code_version() -> str:
 
 
 def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None,
-             resolution: bool = False) -> dict:
+             resolution: bool = False, refine_velocity: bool = False) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row.
 
     ``dtype``: ``"float32"`` or ``"float64"`` (which needs JAX's x64 mode, enabled by the
     caller: the harness's subprocess does), for the ground truth and the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
-    guesses, :data:`INITIAL_GUESS`). ``resolution``: :attr:`jaxmpm.fit.FitConfig.resolution`."""
+    guesses, :data:`INITIAL_GUESS`). ``resolution``, ``refine_velocity``: those of
+    :class:`jaxmpm.fit.FitConfig` (the velocity held after its pre-contact stage, PAC-NeRF's
+    protocol, or refitted with the material)."""
     import jax
 
     if dtype not in ("float32", "float64"):
@@ -331,7 +333,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
     config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None,
-                       resolution=resolution)
+                       resolution=resolution, refine_velocity=refine_velocity)
     result = fit(start.model, start.params, obs, names, config, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
@@ -357,6 +359,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
         "dtype": dtype,
         "resolution": resolution,
+        "refine_velocity": refine_velocity,
         "code": code_version(),
     }
 
@@ -369,7 +372,7 @@ def _child(argv: list[str]) -> None:
 
         jax.config.update("jax_enable_x64", True)
     try:
-        row = run_case(case, preset, argv[2], resolution=argv[3] == "resolution")
+        row = run_case(case, preset, argv[2], **json.loads(argv[3]))
     except Exception as err:  # a failed case is a result too
         row = {"case": asdict(case), "key": case.key, "error": f"{type(err).__name__}: {err}"}
     row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -377,11 +380,12 @@ def _child(argv: list[str]) -> None:
 
 
 def _run_child(case: Case, preset: Preset, timeout: float | None, log: Path, dtype: str = "float32",
-               resolution: bool = False) -> dict:
-    """Run one case in a subprocess; its terminal output (the fit's progress) streams to ``log``,
-    so a case that times out or crashes leaves its progress behind."""
+               options: dict | None = None) -> dict:
+    """Run one case in a subprocess (``options``: :func:`run_case`'s keyword options); its
+    terminal output (the fit's progress) streams to ``log``, so a case that times out or crashes
+    leaves its progress behind."""
     cmd = [sys.executable, "-c", "import sys; from jaxmpm.bench_sysid import _child; _child(sys.argv[1:])",
-           json.dumps(asdict(case)), json.dumps(asdict(preset)), dtype, "resolution" if resolution else "statistical"]
+           json.dumps(asdict(case)), json.dumps(asdict(preset)), dtype, json.dumps(options or {})]
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as fh:
         try:
@@ -508,6 +512,9 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", action="store_true",
                         help="standard deviations raised to the scale each loss resolves (FitConfig.resolution; "
                              "the σ check then tests those)")
+    parser.add_argument("--refine-velocity", action="store_true",
+                        help="refit the initial velocity with the material after its pre-contact stage "
+                             "(FitConfig.refine_velocity); an output folder holds rows of one choice")
     args = parser.parse_args(argv)
     dtype = "float64" if args.float64 else "float32"
     preset, cases = preset_cases(args.preset)
@@ -532,6 +539,12 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     if other:
         print(f"error: {results} holds {', '.join(other)} rows; run {dtype} into another --out", file=sys.stderr)
         return 2
+    if any(r.get("refine_velocity", False) != args.refine_velocity for r in done.values() if "error" not in r):
+        held = "refitted" if not args.refine_velocity else "held"
+        print(f"error: {results} holds rows whose velocity was {held} after its stage; "
+              f"run {'with' if not args.refine_velocity else 'without'} --refine-velocity there, or into another --out",
+              file=sys.stderr)
+        return 2
     todo = [c for c in cases if c.key not in done]
     if args.limit is not None:
         todo = todo[: args.limit]
@@ -540,7 +553,8 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
           file=sys.stderr, flush=True)
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
-        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype, args.resolution)
+        row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype,
+                         {"resolution": args.resolution, "refine_velocity": args.refine_velocity})
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")

@@ -89,6 +89,16 @@ def test_an_output_folder_holds_rows_of_one_dtype(tmp_path, capsys):
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
 
 
+def test_an_output_folder_holds_rows_of_one_velocity_choice(tmp_path, capsys):
+    row = {"case": {"material": "newtonian", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"},
+           "key": "newtonian-box-0-tracks-cpic", "errors": {"mu": 0.0}, "dtype": "float32", "refine_velocity": False}
+    (tmp_path / "results.jsonl").write_text(json.dumps(row) + "\n")
+    # refused before any case runs (the ci preset's case is not done with the velocity refitted)
+    assert run_sysid_bench(["--preset", "ci", "--refine-velocity", "--out", str(tmp_path)]) == 2
+    assert "velocity was held after its stage; run without --refine-velocity" in capsys.readouterr().err
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
+
+
 def test_find_case_by_key():
     preset, case = find_case("newtonian-small-0-tracks-cpic")
     assert case == Case("newtonian", "small", 0, "tracks", "cpic") and preset == preset_cases("reduced")[0]
