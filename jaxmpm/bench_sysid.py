@@ -281,14 +281,15 @@ def code_version() -> str:
 
 
 def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None,
-             resolution: bool = False, refine_velocity: bool = False) -> dict:
+             resolution: bool = False, refine_velocity: bool | None = None) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row.
 
     ``dtype``: ``"float32"`` or ``"float64"`` (which needs JAX's x64 mode, enabled by the
     caller: the harness's subprocess does), for the ground truth and the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
     guesses, :data:`INITIAL_GUESS`). ``resolution``, ``refine_velocity``: those of
-    :class:`jaxmpm.fit.FitConfig` (the velocity held after its pre-contact stage, PAC-NeRF's
-    protocol, or refitted with the material)."""
+    :class:`jaxmpm.fit.FitConfig` (``refine_velocity``: None refits the velocity with the
+    material when it rests on one interval of silhouettes, False holds it after its
+    pre-contact stage as PAC-NeRF's protocol does, True always refits it)."""
     import jax
 
     if dtype not in ("float32", "float64"):
@@ -496,8 +497,18 @@ def sigma_check(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def _refine_choice(row: dict) -> str:
+    """A row's ``--refine-velocity`` choice (rows before session 33 held the velocity: "no")."""
+    from .fit import REFINE_VELOCITY
+
+    value = row.get("refine_velocity", False)
+    return next(k for k, v in REFINE_VELOCITY.items() if v is value)
+
+
 def run_sysid_bench(argv: list[str] | None = None) -> int:
     """Entry point of ``jaxmpm bench sysid`` (see the module docstring). Returns an exit code."""
+    from .fit import REFINE_VELOCITY
+
     parser = argparse.ArgumentParser(prog="jaxmpm bench sysid", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", choices=("ci", "reduced", "full"), default="reduced")
@@ -512,10 +523,13 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", action="store_true",
                         help="standard deviations raised to the scale each loss resolves (FitConfig.resolution; "
                              "the σ check then tests those)")
-    parser.add_argument("--refine-velocity", action="store_true",
-                        help="refit the initial velocity with the material after its pre-contact stage "
-                             "(FitConfig.refine_velocity); an output folder holds rows of one choice")
+    parser.add_argument("--refine-velocity", choices=tuple(REFINE_VELOCITY), default="auto",
+                        help="refit the initial velocity with the material after its pre-contact stage: auto "
+                             "(when it rests on one interval of silhouettes), yes, or no (held: PAC-NeRF's "
+                             "protocol, and this harness's before session 33); FitConfig.refine_velocity. "
+                             "An output folder holds rows of one choice")
     args = parser.parse_args(argv)
+    refine_velocity = REFINE_VELOCITY[args.refine_velocity]
     dtype = "float64" if args.float64 else "float32"
     preset, cases = preset_cases(args.preset)
     if args.only:
@@ -539,11 +553,10 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     if other:
         print(f"error: {results} holds {', '.join(other)} rows; run {dtype} into another --out", file=sys.stderr)
         return 2
-    if any(r.get("refine_velocity", False) != args.refine_velocity for r in done.values() if "error" not in r):
-        held = "refitted" if not args.refine_velocity else "held"
-        print(f"error: {results} holds rows whose velocity was {held} after its stage; "
-              f"run {'with' if not args.refine_velocity else 'without'} --refine-velocity there, or into another --out",
-              file=sys.stderr)
+    choices = sorted({_refine_choice(r) for r in done.values() if "error" not in r} - {args.refine_velocity})
+    if choices:
+        print(f"error: {results} holds rows of --refine-velocity {', '.join(choices)}; run --refine-velocity "
+              f"{args.refine_velocity} into another --out", file=sys.stderr)
         return 2
     todo = [c for c in cases if c.key not in done]
     if args.limit is not None:
@@ -554,7 +567,7 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
         row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype,
-                         {"resolution": args.resolution, "refine_velocity": args.refine_velocity})
+                         {"resolution": args.resolution, "refine_velocity": refine_velocity})
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")

@@ -167,7 +167,7 @@ def _say_step(model, params, when: str = "") -> None:
 
 
 def cmd_fit(args) -> int:
-    from .fit import FitConfig, fit_scene
+    from .fit import REFINE_VELOCITY, FitConfig, fit_scene
     from .fit_report import format_table, format_timing, write_json
     from .identify.parameters import default_names
     from .observe import load_observation
@@ -192,7 +192,8 @@ def cmd_fit(args) -> int:
 
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
-                       velocity_until=args.velocity_until, scan=scan, resolution=args.resolution)
+                       velocity_until=args.velocity_until, scan=scan, resolution=args.resolution,
+                       refine_velocity=REFINE_VELOCITY[args.refine_velocity])
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     write_json(Path(args.out), payload)
@@ -346,6 +347,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame for image losses")
     p.add_argument("--velocity-until", type=float, default=None,
                    help="last observed time (s) of the velocity stage (default: detected contact)")
+    p.add_argument("--refine-velocity", choices=("auto", "yes", "no"), default="auto",  # fit.REFINE_VELOCITY
+                   help="refit the velocity with the material after its pre-contact stage: auto (when it rests on "
+                        "one observed interval and no per-particle tracks), yes, or no (held, PAC-NeRF)")
     p.add_argument("--scan", default=None, metavar="DECADES",
                    help="before fitting each log10 parameter, try its guess x 10^d for these d and start from the "
                         "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls; default: no scan)")

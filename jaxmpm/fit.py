@@ -96,6 +96,10 @@ ADAM_WINDOW_STEPS = 50
 MAX_VELOCITY_REFITS = 3
 
 
+#: The command lines' ``--refine-velocity`` choices: :attr:`FitConfig.refine_velocity`'s values.
+REFINE_VELOCITY = {"auto": None, "yes": True, "no": False}
+
+
 class FitError(JaxmpmError, RuntimeError):
     """A fit could not start (e.g. the simulation is unstable even at small dt)."""
 
@@ -128,7 +132,13 @@ class FitConfig:
         velocity_until: last observed time of the velocity stage (default: detected, see
             :func:`contact_time`).
         warmup_frames: frames after contact in the window stage (PAC-NeRF: 3).
-        refine_velocity: also refit the velocity in the later stages.
+        refine_velocity: also refit the velocity in the stages after its pre-contact stage.
+            None (default): when that stage saw a single observed interval and no
+            per-particle tracks (masks, images or untracked points): one frame of
+            silhouettes pins a velocity only to a fraction of a pixel, and later stages that
+            hold it turn its error into material error (the sysid benchmark's sand on the
+            bunny: 0.017 m/s off, φ 0.59° off held, 0.04° refitted; docs/benchmark_sysid.md,
+            session 33). False: held, PAC-NeRF's protocol. True: always refitted.
         renderer, num_pixels, probes, colors: image and probe options of the objective.
         uncertainty: compute the Gauss–Newton standard deviations.
         resolution: raise each standard deviation to the scale the loss resolves where it is
@@ -166,7 +176,7 @@ class FitConfig:
     seed: int = 0
     velocity_until: float | None = None
     warmup_frames: int = 3
-    refine_velocity: bool = False
+    refine_velocity: bool | None = None
     renderer: Any = "volume"
     num_pixels: int = 256
     probes: dict | None = None
@@ -281,9 +291,10 @@ def plan_stages(
     *,
     velocity_until: float | None = None,
     warmup_frames: int = 3,
-    refine_velocity: bool = False,
+    refine_velocity: bool | None = None,
 ) -> tuple[list[Stage], list[str]]:
-    """PAC-NeRF's schedule for ``names`` (see the module docstring) and notes about it."""
+    """PAC-NeRF's schedule for ``names`` (see the module docstring) and notes about it;
+    ``refine_velocity``: :attr:`FitConfig.refine_velocity`."""
     names = list(names)
     vel = [n for n in names if leaf_name(n) == "velocity"]
     rest = [n for n in names if leaf_name(n) != "velocity"]
@@ -303,6 +314,13 @@ def plan_stages(
             notes.append("the body is in contact from the start: the velocity is fitted with the other parameters")
         else:
             stages.append(Stage(vel, float(t_c), f"velocity (pre-contact frames, t <= {t_c:.4g} s)"))
+    if vel and stages and refine_velocity is None:
+        tracked = observation.positions is not None and observation.point_ids == "particles"
+        refine_velocity = not tracked and len(pre) == 1
+        if refine_velocity:
+            notes.append(f"the velocity rests on one observed interval before contact (t <= {t_c:.4g} s) and no "
+                         "per-particle tracks: it is refitted with the material after its stage "
+                         "(refine_velocity=False holds it)")
     joint = rest + (vel if (refine_velocity or not stages) else [])
     if t_c is not None and warmup_frames > 0:
         window = float(t_c) + warmup_frames * model.frame_dt
@@ -603,8 +621,8 @@ def fit(
             t_new = contact_time(model, now, observation)
             planning_s += time.perf_counter() - t_plan
             t_c = t_new if t_new is not None else t_guess
-            rest, _ = plan_stages(model, now, observation, names, velocity_until=t_c,
-                                  warmup_frames=c.warmup_frames, refine_velocity=c.refine_velocity)
+            rest, rest_notes = plan_stages(model, now, observation, names, velocity_until=t_c,
+                                           warmup_frames=c.warmup_frames, refine_velocity=c.refine_velocity)
             same_window = abs(t_c - stage.until) <= eps
             if same_window and rest and rest[0].names == vel_names:
                 rest = rest[1:]  # the velocity was just fitted on exactly this window
@@ -618,6 +636,10 @@ def fit(
                 notes.append(f"with the fitted velocity the body touches by t = {t_c:.4g} s: the velocity is "
                              "refitted on the frames before that")
                 say(notes[-1])
+            for note in rest_notes:
+                if note not in notes:
+                    notes.append(note)
+                    say(note)
 
     final_params = apply_unconstrained(model, params, names, y_all)
     values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}

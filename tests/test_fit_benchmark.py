@@ -93,9 +93,9 @@ def test_an_output_folder_holds_rows_of_one_velocity_choice(tmp_path, capsys):
     row = {"case": {"material": "newtonian", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"},
            "key": "newtonian-box-0-tracks-cpic", "errors": {"mu": 0.0}, "dtype": "float32", "refine_velocity": False}
     (tmp_path / "results.jsonl").write_text(json.dumps(row) + "\n")
-    # refused before any case runs (the ci preset's case is not done with the velocity refitted)
-    assert run_sysid_bench(["--preset", "ci", "--refine-velocity", "--out", str(tmp_path)]) == 2
-    assert "velocity was held after its stage; run without --refine-velocity" in capsys.readouterr().err
+    # refused before any case runs (the ci preset's case is not done with the default, auto)
+    assert run_sysid_bench(["--preset", "ci", "--out", str(tmp_path)]) == 2
+    assert "holds rows of --refine-velocity no; run --refine-velocity auto into another" in capsys.readouterr().err
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
 
 

@@ -75,6 +75,26 @@ def test_staged_fit_velocity_first_then_material():
     json.dumps(result.to_json())
 
 
+@pytest.mark.parametrize("tracked", [True, False])
+@pytest.mark.parametrize("intervals", [1, 2])
+@pytest.mark.parametrize("refine_velocity", [None, False, True])
+def test_the_velocity_is_refitted_when_it_rests_on_one_interval_of_untracked_data(obs, tracked, intervals,
+                                                                                    refine_velocity):
+    """refine_velocity=None refits the velocity with the material (and says so) only when its
+    stage sees a single observed interval and no per-particle tracks; False holds it, True
+    always refits it."""
+    data = obs if tracked else Observation(times=obs.times, positions=obs.positions, scene=obs.scene)
+    start = load_scene(_spec(mu=20.0))
+    t_c = float(np.sort(np.asarray(obs.times))[intervals])
+    stages, notes = plan_stages(start.model, start.params, data, ["mu", "velocity"], velocity_until=t_c,
+                                refine_velocity=refine_velocity)
+    assert stages[0].names == ["velocity"] and stages[0].until == pytest.approx(t_c)
+    refit = refine_velocity if refine_velocity is not None else (not tracked and intervals == 1)
+    assert all(("velocity" in s.names) is refit for s in stages[1:]), [s.names for s in stages]
+    said = [n for n in notes if "rests on one observed interval" in n]
+    assert len(said) == (refine_velocity is None and refit)
+
+
 def test_unstable_start_halves_dt_and_recovers():
     """Four substeps per frame are unstable at this stiffness: the fit halves dt until stable."""
     obs = _observe(_spec(substeps=8))

@@ -1,0 +1,56 @@
+"""Sysid cases of another truth set than the preset's, under each velocity choice: a check of
+a fitting rule on cases it was not chosen on.
+
+The ``reduced`` preset holds set 0 of the silhouette cases only. This script identifies
+``material-collider-SET-supervision-mode`` cases (``--cases``, the harness's key layout, any
+set) with the ``reduced`` preset's settings, once per ``--refine-velocity`` choice
+(:attr:`jaxmpm.fit.FitConfig.refine_velocity`: auto, yes, no), and appends the harness's rows
+(plus ``refine_velocity``) to ``--out``. Session 33 chose the automatic velocity refit on set 0
+and checked it on set 1 with:
+
+    python benchmarks/sysid_other_set.py --cases sand-bunny-1-silhouettes-cpic,newtonian-armadillo-1-silhouettes-cpic \\
+        --refine-velocity auto,no --out other_set.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", required=True, help="comma-separated keys material-collider-set-supervision-mode")
+    parser.add_argument("--refine-velocity", default="auto,no", help="comma-separated choices among auto, yes, no")
+    parser.add_argument("--out", required=True, help="JSON lines, one row per case and choice")
+    args = parser.parse_args(argv)
+
+    from jaxmpm.bench_sysid import COLLIDER_TOP, MATERIALS, MODES, SUPERVISION, Case, preset_cases, run_case
+    from jaxmpm.fit import REFINE_VELOCITY
+
+    preset, _ = preset_cases("reduced")
+    cases = []
+    for key in [k.strip() for k in args.cases.split(",") if k.strip()]:
+        parts = key.split("-")
+        if (len(parts) != 5 or parts[0] not in MATERIALS or parts[1] not in COLLIDER_TOP or not parts[2].isdigit()
+                or parts[3] not in SUPERVISION or parts[4] not in MODES):
+            parser.error(f"case {key!r}: expected material-collider-set-supervision-mode, e.g. sand-bunny-1-silhouettes-cpic")
+        cases.append(Case(parts[0], parts[1], int(parts[2]), parts[3], parts[4]))
+    choices = [c.strip() for c in args.refine_velocity.split(",") if c.strip()]
+    if not choices or any(c not in REFINE_VELOCITY for c in choices):
+        parser.error(f"--refine-velocity: choices among {', '.join(REFINE_VELOCITY)}, got {args.refine_velocity!r}")
+    for case in cases:
+        for choice in choices:
+            print(f"{case.key}, --refine-velocity {choice}", file=sys.stderr, flush=True)
+            row = run_case(case, preset, refine_velocity=REFINE_VELOCITY[choice])
+            with open(args.out, "a") as fh:
+                fh.write(json.dumps(row) + "\n")
+            errs = ", ".join(f"{k} {v:.3g}" for k, v in row.get("errors", {}).items())
+            print(f"  -> {errs}; velocity {row.get('velocity_error', float('nan')):.3g} m/s off; {row.get('iterations')} "
+                  f"iterations, {'converged' if row.get('converged') else 'NOT converged'}", file=sys.stderr, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
