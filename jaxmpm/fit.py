@@ -636,7 +636,7 @@ def fit(
                 notes.append(f"with the fitted velocity the body touches by t = {t_c:.4g} s: the velocity is "
                              "refitted on the frames before that")
                 say(notes[-1])
-            for note in rest_notes:
+            for note in rest_notes if t_c > eps else []:  # (in contact from the start: said above)
                 if note not in notes:
                     notes.append(note)
                     say(note)

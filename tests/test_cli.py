@@ -330,3 +330,25 @@ def test_demo_video_goes_from_rendered_views_to_parameters(tmp_path, capsys):
     velocity = json.loads(scene.split("velocity = ")[1].split("\n")[0])
     np.testing.assert_allclose(velocity, [0.0, -1.0, 0.0], atol=0.05)  # from the free fall, corrected by g
     assert "truth" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("choice, value", [(None, None), ("auto", None), ("yes", True), ("no", False)])
+def test_fit_refine_velocity_choice_reaches_the_fit(simulated, monkeypatch, choice, value):
+    """``jaxmpm fit --refine-velocity auto|yes|no`` is FitConfig.refine_velocity None|True|False."""
+    import importlib
+
+    folder, scene, obs, _ = simulated
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_fit_scene(scene, obs, names, config, **kwargs):
+        seen["config"] = config
+        raise Stop
+
+    monkeypatch.setattr(importlib.import_module("jaxmpm.fit"), "fit_scene", fake_fit_scene)
+    argv = ["fit", str(scene), str(obs), "--params", "mu", "--out", str(folder / "choice.json")]
+    with pytest.raises(Stop):
+        main(argv + ([] if choice is None else ["--refine-velocity", choice]))
+    assert seen["config"].refine_velocity is value
