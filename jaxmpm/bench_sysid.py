@@ -22,6 +22,7 @@ Usage::
     jaxmpm bench sysid --preset full --out bench_sysid_full    # the whole protocol (hours to days on a CPU)
     jaxmpm bench sysid --preset ci --out /tmp/ci               # one tiny case
     jaxmpm bench sysid --only newtonian-small --float64 --out bench_sysid_f64   # the same cases in float64
+    jaxmpm bench sysid --only silhouettes-cpic --scan=-1,1,2,3 --out bench_sysid_scan   # with identify's decade scan
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -281,15 +283,18 @@ def code_version() -> str:
 
 
 def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None,
-             resolution: bool = False, refine_velocity: bool | None = None) -> dict:
+             resolution: bool = False, refine_velocity: bool | None = None,
+             scan: Sequence[float] | None = None) -> dict:
     """Generate the ground truth of ``case``, observe it, identify it; return a result row.
 
     ``dtype``: ``"float32"`` or ``"float64"`` (which needs JAX's x64 mode, enabled by the
     caller: the harness's subprocess does), for the ground truth and the fit alike. ``guess``: the material's starting values (default: PAC-NeRF's initial
-    guesses, :data:`INITIAL_GUESS`). ``resolution``, ``refine_velocity``: those of
+    guesses, :data:`INITIAL_GUESS`). ``resolution``, ``refine_velocity``, ``scan``: those of
     :class:`jaxmpm.fit.FitConfig` (``refine_velocity``: None refits the velocity with the
     material when it rests on one interval of silhouettes, False holds it after its
-    pre-contact stage as PAC-NeRF's protocol does, True always refits it)."""
+    pre-contact stage as PAC-NeRF's protocol does, True always refits it; ``scan``: decade
+    offsets tried before each stage that fits a log10 parameter, as ``jaxmpm identify`` does;
+    None, the protocol's, tries none)."""
     import jax
 
     if dtype not in ("float32", "float64"):
@@ -334,7 +339,8 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
     weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
     config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None,
-                       resolution=resolution, refine_velocity=refine_velocity)
+                       resolution=resolution, refine_velocity=refine_velocity,
+                       scan=None if scan is None else tuple(float(d) for d in scan))
     result = fit(start.model, start.params, obs, names, config, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)
@@ -361,6 +367,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
         "dtype": dtype,
         "resolution": resolution,
         "refine_velocity": refine_velocity,
+        "scan": None if scan is None else [float(d) for d in scan],
         "code": code_version(),
     }
 
@@ -497,16 +504,23 @@ def sigma_check(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def _refine_choice(row: dict) -> str:
-    """A row's ``--refine-velocity`` choice (rows before session 33 held the velocity: "no")."""
+def _choices(row: dict) -> dict[str, str]:
+    """A row's run-wide choices, as its command line spells them: the dtype, the
+    ``--refine-velocity`` choice (rows before session 33 held the velocity: "no") and the
+    ``--scan`` offsets (rows before session 34 scanned nothing: "none")."""
     from .fit import REFINE_VELOCITY
 
-    value = row.get("refine_velocity", False)
-    return next(k for k, v in REFINE_VELOCITY.items() if v is value)
+    refine = row.get("refine_velocity", False)
+    scan = row.get("scan")
+    return {"dtype": row.get("dtype", "float32"),
+            "--refine-velocity": next(k for k, v in REFINE_VELOCITY.items() if v is refine),
+            "--scan": "none" if scan is None else ",".join(f"{d:g}" for d in scan)}
 
 
 def run_sysid_bench(argv: list[str] | None = None) -> int:
     """Entry point of ``jaxmpm bench sysid`` (see the module docstring). Returns an exit code."""
+    from .cli import parse_scan
+    from .errors import JaxmpmError
     from .fit import REFINE_VELOCITY
 
     parser = argparse.ArgumentParser(prog="jaxmpm bench sysid", description=__doc__,
@@ -528,9 +542,17 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
                              "(when it rests on one interval of silhouettes), yes, or no (held: PAC-NeRF's "
                              "protocol, and this harness's before session 33); FitConfig.refine_velocity. "
                              "An output folder holds rows of one choice")
+    parser.add_argument("--scan", default=None, metavar="DECADES",
+                        help="before each stage that fits a log10 parameter, try its value x 10^d for these d "
+                             "and start from the best, e.g. -1,1,2,3 as jaxmpm identify does (FitConfig.scan; "
+                             "default: none, the protocol's). An output folder holds rows of one choice")
     args = parser.parse_args(argv)
     refine_velocity = REFINE_VELOCITY[args.refine_velocity]
     dtype = "float64" if args.float64 else "float32"
+    try:
+        scan = parse_scan(args.scan)
+    except JaxmpmError as err:
+        parser.error(str(err))
     preset, cases = preset_cases(args.preset)
     if args.only:
         keys = [k.strip() for k in args.only.split(",") if k.strip()]
@@ -549,15 +571,14 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
             if line.strip():
                 row = json.loads(line)
                 done[row["key"]] = row
-    other = sorted({r.get("dtype", "float32") for r in done.values() if "error" not in r} - {dtype})
-    if other:
-        print(f"error: {results} holds {', '.join(other)} rows; run {dtype} into another --out", file=sys.stderr)
-        return 2
-    choices = sorted({_refine_choice(r) for r in done.values() if "error" not in r} - {args.refine_velocity})
-    if choices:
-        print(f"error: {results} holds rows of --refine-velocity {', '.join(choices)}; run --refine-velocity "
-              f"{args.refine_velocity} into another --out", file=sys.stderr)
-        return 2
+    wanted = _choices({"dtype": dtype, "refine_velocity": refine_velocity, "scan": scan})
+    for name, value in wanted.items():
+        held = sorted({_choices(r)[name] for r in done.values() if "error" not in r} - {value})
+        if held:
+            what = f"{', '.join(held)} rows" if name == "dtype" else f"rows of {name} {', '.join(held)}"
+            run = value if name == "dtype" else f"{name} {value}"
+            print(f"error: {results} holds {what}; run {run} into another --out", file=sys.stderr)
+            return 2
     todo = [c for c in cases if c.key not in done]
     if args.limit is not None:
         todo = todo[: args.limit]
@@ -567,7 +588,7 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
     for i, case in enumerate(todo):
         print(f"[{i + 1}/{len(todo)}] {case.key} ...", file=sys.stderr, flush=True)
         row = _run_child(case, preset, args.timeout, out / "logs" / f"{case.key}.log", dtype,
-                         {"resolution": args.resolution, "refine_velocity": refine_velocity})
+                         {"resolution": args.resolution, "refine_velocity": refine_velocity, "scan": scan})
         done[case.key] = row
         with open(results, "a") as fh:
             fh.write(json.dumps(row) + "\n")

@@ -63,7 +63,7 @@ def _param_names(flag: str, text: str | None) -> list[str] | None:
     return None if text is None else check_names([n.strip() for n in text.split(",")], f"{flag} {text!r}")
 
 
-def _scan_offsets(text: str | None) -> tuple[float, ...] | None:
+def parse_scan(text: str | None) -> tuple[float, ...] | None:
     """The decade offsets of ``--scan`` (comma-separated numbers); None when not given."""
     if text is None:
         return None
@@ -175,7 +175,7 @@ def cmd_fit(args) -> int:
 
     _check_output_file("--out", args.out)
     _check_at_least("--max-steps", args.max_steps, 1)
-    scan = _scan_offsets(args.scan)
+    scan = parse_scan(args.scan)
     given = _param_names("--params", args.params)
     scene = load_scene(args.scene, dtype=_dtype(args))
     obs = load_observation(args.observations)

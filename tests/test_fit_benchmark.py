@@ -1,6 +1,7 @@
 """The system-identification benchmark harness (``jaxmpm bench sysid``): its tables, and the
 CI-sized preset run end to end (one coarse 3D identification, ~70 s)."""
 
+import importlib
 import json
 
 import jax.numpy as jnp
@@ -97,6 +98,36 @@ def test_an_output_folder_holds_rows_of_one_velocity_choice(tmp_path, capsys):
     assert run_sysid_bench(["--preset", "ci", "--out", str(tmp_path)]) == 2
     assert "holds rows of --refine-velocity no; run --refine-velocity auto into another" in capsys.readouterr().err
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
+
+
+def test_an_output_folder_holds_rows_of_one_scan_choice(tmp_path, capsys):
+    row = {"case": {"material": "newtonian", "collider": "box", "index": 0, "supervision": "tracks", "mode": "cpic"},
+           "key": "newtonian-box-0-tracks-cpic", "errors": {"mu": 0.0}, "dtype": "float32", "refine_velocity": None}
+    (tmp_path / "results.jsonl").write_text(json.dumps(row) + "\n")
+    # a row from before the option scanned nothing: refused before any case runs
+    assert run_sysid_bench(["--preset", "ci", "--scan=-1,1,2,3", "--out", str(tmp_path)]) == 2
+    assert "holds rows of --scan none; run --scan -1,1,2,3 into another" in capsys.readouterr().err
+    assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
+    with pytest.raises(SystemExit):  # a malformed --scan is the parser's error, before any work
+        run_sysid_bench(["--preset", "ci", "--scan", "1,x", "--out", str(tmp_path / "other")])
+    assert "--scan must be comma-separated decade offsets" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
+
+
+def test_run_case_hands_its_choices_to_the_fit(monkeypatch):
+    fit_module = importlib.import_module("jaxmpm.fit")  # the package's ``jaxmpm.fit`` is the function
+    seen = {}
+
+    def capture(model, params, observation, names, config, **kwargs):
+        seen["config"] = config
+        raise RuntimeError("captured")
+
+    monkeypatch.setattr(fit_module, "fit", capture)
+    preset, cases = preset_cases("ci")
+    with pytest.raises(RuntimeError, match="captured"):
+        run_case(cases[0], preset, scan=[-1, 2], refine_velocity=True, resolution=True)
+    config = seen["config"]
+    assert config.scan == (-1.0, 2.0) and config.refine_velocity is True and config.resolution is True
 
 
 def test_find_case_by_key():
