@@ -250,7 +250,7 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
 
     times = np.asarray(observation.times, float)
     tol = 0.05 * model.grid.dx if tol is None else tol
-    if observation.positions is not None and observation.point_ids == "particles" and len(times) >= 2:
+    if observation.tracks_particles and len(times) >= 2:
         x = np.asarray(observation.positions, float)
         disp = _velocity_dispersion(x)
         scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
@@ -315,8 +315,7 @@ def plan_stages(
         else:
             stages.append(Stage(vel, float(t_c), f"velocity (pre-contact frames, t <= {t_c:.4g} s)"))
     if vel and stages and refine_velocity is None:
-        tracked = observation.positions is not None and observation.point_ids == "particles"
-        refine_velocity = not tracked and len(pre) == 1
+        refine_velocity = not observation.tracks_particles and len(pre) == 1
         if refine_velocity:
             notes.append(f"the velocity rests on one observed interval before contact (t <= {t_c:.4g} s) and no "
                          "per-particle tracks: it is refitted with the material after its stage "
@@ -488,7 +487,7 @@ def fit(
     # starts on the first observed interval and contact is re-detected after each velocity stage
     t_guess = None
     if (c.stages == "auto" and c.velocity_until is None and vel_names and plan[0].names == vel_names
-            and not (observation.positions is not None and observation.point_ids == "particles")):
+            and not observation.tracks_particles):
         t_guess = plan[0].until
         plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
     replans_left = MAX_VELOCITY_REFITS if t_guess is not None else 0

@@ -53,6 +53,12 @@ class Observation:
     def __post_init__(self):
         self.validate()
 
+    @property
+    def tracks_particles(self) -> bool:
+        """Whether ``positions`` track every simulation particle by id (``point_ids ==
+        "particles"``): such tracks pin the velocity and contact from any frames."""
+        return self.positions is not None and self.point_ids == "particles"
+
     def validate(self, source: str = "observation") -> None:
         """Check shapes and the presence rules of §5.2; raise ObservationError naming the key."""
         for key in ("times", "positions", "intrinsics", "cam_to_world", "probe_times", "probe_values"):
