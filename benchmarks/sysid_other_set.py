@@ -5,14 +5,16 @@ The ``reduced`` preset holds set 0 of the silhouette cases only. This script ide
 ``material-collider-SET-supervision-mode`` cases (``--cases``, the harness's key layout, any
 set) with the ``reduced`` preset's settings, once per ``--refine-velocity`` choice
 (:attr:`jaxmpm.fit.FitConfig.refine_velocity`: auto, yes, no) and ``--scan`` choice
-(:attr:`jaxmpm.fit.FitConfig.scan`: ``none`` or decade offsets, choices separated by ``;``), and
+(:attr:`jaxmpm.fit.FitConfig.scan`: ``auto``, ``none`` or decade offsets, choices separated by
+``;``), and
 appends the harness's rows to ``--out``. Session 33 chose the automatic velocity refit on set 0
 and checked it on set 1 with:
 
     python benchmarks/sysid_other_set.py --cases sand-bunny-1-silhouettes-cpic,newtonian-armadillo-1-silhouettes-cpic \\
         --refine-velocity auto,no --out other_set.jsonl
 
-and session 34 the decade scan with ``--refine-velocity auto --scan "none;-1,1,2,3"``.
+and session 34 the decade scan with ``--refine-velocity auto --scan "none;-1,1,2,3"`` (write
+``--scan=-1,1,2,3`` for offsets alone: argparse reads a leading ``-1`` as an option).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", required=True, help="comma-separated keys material-collider-set-supervision-mode")
     parser.add_argument("--refine-velocity", default="auto,no", help="comma-separated choices among auto, yes, no")
-    parser.add_argument("--scan", default="none", help="';'-separated choices: none or comma-separated decades")
+    parser.add_argument("--scan", default="auto", help="';'-separated choices: auto, none or comma-separated decades")
     parser.add_argument("--out", required=True, help="JSON lines, one row per case and choice")
     args = parser.parse_args(argv)
 
@@ -49,7 +51,7 @@ def main(argv=None) -> int:
     scans = {}
     for text in [t.strip() for t in args.scan.split(";") if t.strip()]:
         try:
-            scans[text] = None if text == "none" else parse_scan(text)
+            scans[text] = parse_scan(text)
         except JaxmpmError as err:
             parser.error(str(err))
     for case in cases:

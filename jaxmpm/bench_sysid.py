@@ -22,7 +22,7 @@ Usage::
     jaxmpm bench sysid --preset full --out bench_sysid_full    # the whole protocol (hours to days on a CPU)
     jaxmpm bench sysid --preset ci --out /tmp/ci               # one tiny case
     jaxmpm bench sysid --only newtonian-small --float64 --out bench_sysid_f64   # the same cases in float64
-    jaxmpm bench sysid --only silhouettes-cpic --scan=-1,1,2,3 --out bench_sysid_scan   # with identify's decade scan
+    jaxmpm bench sysid --only silhouettes-cpic --scan none --out bench_sysid_noscan   # without the decade scan
 """
 
 from __future__ import annotations
@@ -293,8 +293,8 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
     :class:`jaxmpm.fit.FitConfig` (``refine_velocity``: None refits the velocity with the
     material when it rests on one interval of silhouettes, False holds it after its
     pre-contact stage as PAC-NeRF's protocol does, True always refits it; ``scan``: decade
-    offsets tried before each stage that fits a log10 parameter, as ``jaxmpm identify`` does;
-    None, the protocol's, tries none)."""
+    offsets tried before the first stage that fits a log10 parameter, None the automatic
+    choice, which scans silhouette fits only, ``()`` none: PAC-NeRF's protocol)."""
     import jax
 
     if dtype not in ("float32", "float64"):
@@ -367,7 +367,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
         "dtype": dtype,
         "resolution": resolution,
         "refine_velocity": refine_velocity,
-        "scan": None if scan is None else [float(d) for d in scan],
+        "scan": _scan_text(scan),
         "code": code_version(),
     }
 
@@ -504,17 +504,25 @@ def sigma_check(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def _scan_text(scan) -> str:
+    """A ``scan`` choice as ``--scan`` spells it: None "auto", empty "none", else the offsets."""
+    if scan is None:
+        return "auto"
+    if isinstance(scan, str):
+        return scan
+    return ",".join(f"{float(d):g}" for d in scan) or "none"
+
+
 def _choices(row: dict) -> dict[str, str]:
     """A row's run-wide choices, as its command line spells them: the dtype, the
     ``--refine-velocity`` choice (rows before session 33 held the velocity: "no") and the
-    ``--scan`` offsets (rows before session 34 scanned nothing: "none")."""
+    ``--scan`` choice (rows before session 34 scanned nothing: "none")."""
     from .fit import REFINE_VELOCITY
 
     refine = row.get("refine_velocity", False)
-    scan = row.get("scan")
     return {"dtype": row.get("dtype", "float32"),
             "--refine-velocity": next(k for k, v in REFINE_VELOCITY.items() if v is refine),
-            "--scan": "none" if scan is None else ",".join(f"{d:g}" for d in scan)}
+            "--scan": _scan_text(row.get("scan", "none"))}
 
 
 def run_sysid_bench(argv: list[str] | None = None) -> int:
@@ -542,10 +550,11 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
                              "(when it rests on one interval of silhouettes), yes, or no (held: PAC-NeRF's "
                              "protocol, and this harness's before session 33); FitConfig.refine_velocity. "
                              "An output folder holds rows of one choice")
-    parser.add_argument("--scan", default=None, metavar="DECADES",
-                        help="before each stage that fits a log10 parameter, try its value x 10^d for these d "
-                             "and start from the best, e.g. -1,1,2,3 as jaxmpm identify does (FitConfig.scan; "
-                             "default: none, the protocol's). An output folder holds rows of one choice")
+    parser.add_argument("--scan", default="auto", metavar="DECADES",
+                        help="before the first stage that fits a log10 parameter, try its value x 10^d for these "
+                             "d and start from the best (FitConfig.scan): auto (default; -1,1,2,3 for the "
+                             "silhouette cases, none for the track cases), none (PAC-NeRF's protocol, and this "
+                             "harness's before session 34) or offsets. An output folder holds rows of one choice")
     args = parser.parse_args(argv)
     refine_velocity = REFINE_VELOCITY[args.refine_velocity]
     dtype = "float64" if args.float64 else "float32"
@@ -571,7 +580,7 @@ def run_sysid_bench(argv: list[str] | None = None) -> int:
             if line.strip():
                 row = json.loads(line)
                 done[row["key"]] = row
-    wanted = _choices({"dtype": dtype, "refine_velocity": refine_velocity, "scan": scan})
+    wanted = _choices({"dtype": dtype, "refine_velocity": refine_velocity, "scan": _scan_text(scan)})
     for name, value in wanted.items():
         held = sorted({_choices(r)[name] for r in done.values() if "error" not in r} - {value})
         if held:

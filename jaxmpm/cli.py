@@ -64,13 +64,17 @@ def _param_names(flag: str, text: str | None) -> list[str] | None:
 
 
 def parse_scan(text: str | None) -> tuple[float, ...] | None:
-    """The decade offsets of ``--scan`` (comma-separated numbers); None when not given."""
-    if text is None:
+    """:attr:`jaxmpm.FitConfig.scan` from ``--scan``: ``auto`` (or not given) None, the automatic
+    choice; ``none`` no scan, ``()``; else comma-separated decade offsets."""
+    if text is None or text.strip() == "auto":
         return None
+    if text.strip() == "none":
+        return ()
     try:
         out = tuple(float(t) for t in text.split(","))
     except ValueError:
-        raise JaxmpmError(f"--scan must be comma-separated decade offsets such as -1,1,2,3, got {text!r}") from None
+        raise JaxmpmError(f"--scan must be auto, none or comma-separated decade offsets such as -1,1,2,3, "
+                          f"got {text!r}") from None
     if not all(np.isfinite(out)):
         raise JaxmpmError(f"--scan offsets must be finite, got {text!r}")
     return out
@@ -350,9 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refine-velocity", choices=("auto", "yes", "no"), default="auto",  # fit.REFINE_VELOCITY
                    help="refit the velocity with the material after its pre-contact stage: auto (when it rests on "
                         "one observed interval and no per-particle tracks), yes, or no (held, PAC-NeRF)")
-    p.add_argument("--scan", default=None, metavar="DECADES",
+    p.add_argument("--scan", default="auto", metavar="DECADES",
                    help="before fitting each log10 parameter, try its guess x 10^d for these d and start from the "
-                        "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls; default: no scan)")
+                        "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls); auto (default): "
+                        "-1,1,2,3 without per-particle tracks, none from them; none: no scan")
     p.add_argument("--resolution", action="store_true",
                    help="raise each std to the scale the loss resolves where it is rough (noise-free data, CPIC "
                         "contact): two loss evaluations per parameter and try")

@@ -99,6 +99,15 @@ MAX_VELOCITY_REFITS = 3
 #: The command lines' ``--refine-velocity`` choices: :attr:`FitConfig.refine_velocity`'s values.
 REFINE_VELOCITY = {"auto": None, "yes": True, "no": False}
 
+#: Decade offsets from the starting guess that a fit without per-particle tracks scans before
+#: it fits each log10 material parameter (:attr:`FitConfig.scan`'s automatic choice). The
+#: silhouette loss has plateaus where Levenberg–Marquardt stalls decades from the answer: on
+#: the tiny block of docs/identify.md §4 (μ = 200 Pa·s from PAC-NeRF's guess of 10) it is
+#: nearly flat from 10 to 50 Pa·s and LM stopped at 25; the sysid benchmark's box cases
+#: stalled 0.19 (Newtonian μ) and 1–8 decades (viscoplastic) off without it
+#: (docs/benchmark_sysid.md, session 34).
+SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
+
 
 class FitError(JaxmpmError, RuntimeError):
     """A fit could not start (e.g. the simulation is unstable even at small dt)."""
@@ -151,7 +160,10 @@ class FitConfig:
             the stage starts from the point with the lowest stage loss (:func:`scan_start`).
             Silhouette losses have plateaus where Levenberg–Marquardt stalls a decade or more
             from the answer; a coarse look across them costs one evaluation of the stage's
-            residuals and Jacobian per point. Default None (no scan).
+            residuals and Jacobian per point. None (default): :data:`SCAN_DECADES` when the
+            observation has no per-particle tracks (masks, images or untracked points), no
+            scan from tracks of every particle (whose loss has no such plateaus); ``()``: no
+            scan.
         free_fall_start: from silhouettes, start the first velocity stage from the velocity
             the masks' free fall gives (:func:`free_fall_velocity`) when its stage loss is
             lower than the guess's: the silhouette loss is far from quadratic at a guess
@@ -183,7 +195,7 @@ class FitConfig:
     colors: Any = "auto"
     uncertainty: bool = True
     resolution: bool = False
-    scan: tuple[float, ...] | None = None
+    scan: Sequence[float] | None = None
     free_fall_start: bool = True
 
     def check(self) -> None:
@@ -501,7 +513,8 @@ def fit(
     records: list[dict] = []
     std: dict[str, np.ndarray] = {}
     last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
-    scan_left = set() if not c.scan else {
+    scan = (() if observation.tracks_particles else SCAN_DECADES) if c.scan is None else tuple(c.scan)
+    scan_left = set() if not scan else {
         n for n in names if isinstance(transform_of(n), Log10) and np.ndim(initial[n]) == 0}
     total_iterations = 0
     solved: set[str] = set()  # the names an earlier stage has fitted (their later stages start warm)
@@ -526,7 +539,7 @@ def fit(
             y0 = {n: y_all[n] for n in snames}
             to_scan = [n for n in snames if n in scan_left]
             if to_scan:
-                y0, scanned = stage_scan = scan_start(stage_residuals, y0, to_scan, c.scan)
+                y0, scanned = stage_scan = scan_start(stage_residuals, y0, to_scan, scan)
                 scan_left.difference_update(to_scan)
                 y_all.update(y0)
                 moved = ", ".join(f"{n} x10^{d:+g}" for n, d in scanned["moved"].items()) or "none moved"

@@ -352,3 +352,25 @@ def test_fit_refine_velocity_choice_reaches_the_fit(simulated, monkeypatch, choi
     with pytest.raises(Stop):
         main(argv + ([] if choice is None else ["--refine-velocity", choice]))
     assert seen["config"].refine_velocity is value
+
+
+@pytest.mark.parametrize("choice,value", [(None, None), ("auto", None), ("none", ()), ("-1,2", (-1.0, 2.0))])
+def test_fit_scan_choice_reaches_the_fit(simulated, monkeypatch, choice, value):
+    """``jaxmpm fit --scan auto|none|DECADES`` is FitConfig.scan None|()|the offsets."""
+    import importlib
+
+    folder, scene, obs, _ = simulated
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_fit_scene(scene, obs, names, config, **kwargs):
+        seen["config"] = config
+        raise Stop
+
+    monkeypatch.setattr(importlib.import_module("jaxmpm.fit"), "fit_scene", fake_fit_scene)
+    argv = ["fit", str(scene), str(obs), "--params", "mu", "--out", str(folder / "choice.json")]
+    with pytest.raises(Stop):
+        main(argv + ([] if choice is None else [f"--scan={choice}"]))
+    assert seen["config"].scan == value

@@ -7,7 +7,7 @@ from scenes import MATERIAL_CASES, block_spec
 
 from jaxmpm.constitutive import MATERIALS
 from jaxmpm.errors import JaxmpmError, ObservationError
-from jaxmpm.fit import FitConfig, fit
+from jaxmpm.fit import SCAN_DECADES, FitConfig, fit
 from jaxmpm.identify import LOG10_PARAMS, from_unconstrained, resolve_name, to_unconstrained
 from jaxmpm.observe import Observation
 from jaxmpm.scene import load_scene
@@ -109,3 +109,23 @@ def test_fit_with_a_scan_starts_from_the_scanned_point_and_records_it():
     assert abs(np.log10(float(result.values["mu"]) / truth["mu"])) < 0.01
     with pytest.raises(JaxmpmError, match="scan must be"):
         fit(start.model, start.params, obs, ["mu"], FitConfig(scan=("a",)))
+
+
+def test_the_default_scans_only_fits_without_per_particle_tracks():
+    """FitConfig.scan=None scans SCAN_DECADES when the data do not track every particle (here the
+    same points, untracked) and not from tracks of every particle; () never scans."""
+    truth, _ = MATERIAL_CASES["newtonian"]
+    true_scene = load_scene(_spec(truth, "newtonian"))
+    traj = simulate(true_scene.model, true_scene.params)
+    start = load_scene(_spec({"model": "newtonian", **truth, "mu": truth["mu"] / 100.0}, "newtonian"))
+    tracked = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x), point_ids="particles")
+    untracked = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x))
+
+    def scan_of(obs, **kw):
+        result = fit(start.model, start.params, obs, ["mu"], FitConfig(max_steps=1, stages=None, uncertainty=False, **kw))
+        return result.stages[0].get("scan")
+
+    assert scan_of(tracked) is None
+    scanned = scan_of(untracked)
+    assert scanned["points"] == 1 + len(SCAN_DECADES) and scanned["moved"] == {"mu": 2.0}
+    assert scan_of(untracked, scan=()) is None

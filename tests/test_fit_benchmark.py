@@ -110,7 +110,7 @@ def test_an_output_folder_holds_rows_of_one_scan_choice(tmp_path, capsys):
     assert len((tmp_path / "results.jsonl").read_text().splitlines()) == 1
     with pytest.raises(SystemExit):  # a malformed --scan is the parser's error, before any work
         run_sysid_bench(["--preset", "ci", "--scan", "1,x", "--out", str(tmp_path / "other")])
-    assert "--scan must be comma-separated decade offsets" in capsys.readouterr().err
+    assert "--scan must be auto, none or comma-separated decade offsets" in capsys.readouterr().err
     assert not (tmp_path / "other").exists()
 
 

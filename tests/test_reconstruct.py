@@ -493,7 +493,8 @@ def test_identify_material_refits_the_velocity_with_the_material_only_when_asked
     import importlib
     import types
 
-    from jaxmpm.reconstruct.pipeline import SCAN_DECADES, identify_material
+    from jaxmpm.fit import SCAN_DECADES
+    from jaxmpm.reconstruct.pipeline import identify_material
 
     seen = {}
 

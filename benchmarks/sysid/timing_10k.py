@@ -49,8 +49,8 @@ def main() -> None:
     parser.add_argument("--no-images", action="store_true")
     parser.add_argument("--fit-from", choices=("tracks", "silhouettes"), default="tracks")
     parser.add_argument("--scan", action="store_true",
-                        help="scan the log10 parameters' starting decades first, as `jaxmpm identify` does "
-                             "(jaxmpm.reconstruct.pipeline.SCAN_DECADES)")
+                        help="scan the log10 parameters' starting decades first (jaxmpm.fit.SCAN_DECADES); without "
+                             "it no scan, as before session 34 (fit's default scans silhouette fits)")
     args = parser.parse_args()
 
     preset = Preset(dx=args.dx, substeps=args.substeps, frames=16, views=11, res=96, pixels=128, sets=1, max_steps=25)
@@ -113,10 +113,9 @@ def main() -> None:
         else:  # as the sysid benchmark's silhouette cases
             obs, config = images, FitConfig(weights={"silhouette": 1.0, "rgb": 0.1}, max_steps=preset.max_steps,
                                              num_pixels=preset.pixels, colors=None)
-        if args.scan:
-            from jaxmpm.reconstruct.pipeline import SCAN_DECADES
+        from jaxmpm.fit import SCAN_DECADES
 
-            config = dataclasses.replace(config, scan=SCAN_DECADES)
+        config = dataclasses.replace(config, scan=SCAN_DECADES if args.scan else ())
         out["fit_from"], out["scan"] = args.fit_from, config.scan
         t0, c0 = time.perf_counter(), time.process_time()
         result = fit(start.model, start.params, obs, names + ["velocity"], config, **fit_reporters(t0))

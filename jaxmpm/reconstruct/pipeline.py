@@ -402,14 +402,6 @@ def write_scene(recon: Reconstruction, out: str | os.PathLike) -> Path:
 # --------------------------------------------------------------------------- fit and report
 
 
-#: Decade offsets from the starting guess that the fit scans before it fits each log10
-#: material parameter (:attr:`jaxmpm.FitConfig.scan`). Measured on the tiny block of
-#: docs/identify.md §4 (μ = 200 Pa·s from PAC-NeRF's guess of 10): the silhouette loss is
-#: nearly flat from 10 to 50 Pa·s (0.065 → 0.056) and LM stopped at μ = 25 while the loss at
-#: the truth was 0.013.
-SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
-
-
 def _check_rgb_weight(rgb: float, images, what: str = "an RGB weight needs the frames' colour images") -> None:
     """A weight must be finite and >= 0; a positive one needs ``images`` (``what`` says which)."""
     if isinstance(rgb, bool) or not isinstance(rgb, (int, float, np.number)) or not (np.isfinite(rgb) and rgb >= 0):
@@ -424,7 +416,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
     pre-contact frames, then the material, each log10 parameter first scanned over
-    :data:`SCAN_DECADES` from its guess). Returns a :class:`jaxmpm.FitResult`.
+    :data:`jaxmpm.fit.SCAN_DECADES` from its guess, as ``fit`` does for any fit without per-particle tracks). Returns a :class:`jaxmpm.FitResult`.
 
     ``renderer``: the fit's (``"surfels"`` or ``"volume"``). The default is the renderer the
     body was reconstructed against (its first-frame IoU, :data:`RENDERER`): a renderer
@@ -442,7 +434,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     reconstructed body's shape errors would pass into a refitted velocity (on clean views μ
     0.0003 → 0.036 decades), while an error in the held velocity is absorbed by the material
     (on blurred views μ 0.15 → 0.015 refitted; docs/identify.md §4)."""
-    from ..fit import FitConfig, fit
+    from ..fit import SCAN_DECADES, FitConfig, fit
 
     _check_rgb_weight(rgb, observation.images)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
