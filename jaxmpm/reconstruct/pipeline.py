@@ -416,7 +416,8 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
     pre-contact frames, then the material, each log10 parameter first scanned over
-    :data:`jaxmpm.fit.SCAN_DECADES` from its guess, as ``fit`` does for any fit without per-particle tracks). Returns a :class:`jaxmpm.FitResult`.
+    :data:`jaxmpm.fit.SCAN_DECADES` from its guess, as ``fit`` does by default for any fit
+    without per-particle tracks). Returns a :class:`jaxmpm.FitResult`.
 
     ``renderer``: the fit's (``"surfels"`` or ``"volume"``). The default is the renderer the
     body was reconstructed against (its first-frame IoU, :data:`RENDERER`): a renderer
