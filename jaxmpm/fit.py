@@ -509,6 +509,7 @@ def fit(
 
     y_all = {n: to_unconstrained(n, jnp.asarray(v, jnp.result_type(float))) for n, v in initial.items()}
     halvings_left = c.max_dt_halvings
+    scene_substeps, returned = model.substeps, False  # dt is halved for health only: see the loop's end
     losses: list[float] = []
     records: list[dict] = []
     std: dict[str, np.ndarray] = {}
@@ -652,6 +653,24 @@ def fit(
                 if note not in notes:
                     notes.append(note)
                     say(note)
+        if si == len(plan) - 1 and model.substeps != scene_substeps and not returned:
+            # A halved dt changes the discretised model the data are fitted with: where the
+            # result is healthy at the scene's dt, its last stage is fitted again there.
+            returned = True
+            at_scene = model.with_substeps(scene_substeps)
+            why = build_objective(at_scene, observation, until=stage.until, **objective_options).health(
+                apply_unconstrained(at_scene, params, list(y_all), y_all))
+            if why is None:
+                notes.append(f"stage {si + 1} ended at {model.substeps} substeps/frame (dt halved for health); its "
+                             f"result is healthy at the scene's {scene_substeps}: stage {si + 2} fits its "
+                             "parameters again there")
+                model = at_scene
+                plan.append(replace(stage, label=f"{stage.label or 'all frames'}, again at the scene's dt"))
+                last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+            else:
+                notes.append(f"the result stays at {model.substeps} substeps/frame: at the scene's {scene_substeps} "
+                             f"it is unhealthy ({why})")
+            say(notes[-1])
 
     final_params = apply_unconstrained(model, params, names, y_all)
     values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}

@@ -107,6 +107,21 @@ def test_unstable_start_halves_dt_and_recovers():
         fit(start.model, start.params, obs, ["mu"], FitConfig(stages=None, max_dt_halvings=0))
 
 
+def test_a_fit_halved_for_an_unstable_guess_ends_at_the_scenes_dt():
+    """A guess of mu = 2,000 Pa s is unhealthy at the scene's 20 substeps per frame (stable from
+    ~35), the truth (50) is not (stable from 8): the fit halves dt to start and, its result being
+    healthy at 20, fits mu again there, on the discretisation the data were made with."""
+    obs = _observe(_spec())
+    start = load_scene(_spec(mu=2000.0))
+    result = fit(start.model, start.params, obs, ["mu"], FitConfig(stages=None, max_steps=30))
+    assert any("halved dt" in n for n in result.notes), result.notes
+    first, again = result.stages
+    assert first["substeps"] in (40, 80) and again["substeps"] == 20
+    assert result.substeps == 20 and any("again there" in n for n in result.notes), result.notes
+    assert result.converged, result.message
+    assert abs(np.log10(float(result.values["mu"]) / 50.0)) < 1e-3
+
+
 def test_a_fit_that_does_not_converge_says_so(obs, tmp_path, capsys):
     """The command line: exit code 1, a warning, fit.json with converged = false and the best values."""
     scene_file = tmp_path / "start.json"
