@@ -22,7 +22,9 @@ the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A 
 rollout is unhealthy (:func:`jaxmpm.step.unhealthy`: NaN, a CFL number above ``cfl_limit``,
 energy growth, a stress-wave CFL number above 1) at its starting point, or whose
 solver stalls against unhealthy trial points, halves dt (doubles the substeps) and restarts
-from the best point so far, up to ``max_dt_halvings`` times in all.
+from the best point so far, up to ``max_dt_halvings`` times in all. A halved dt is for health
+only: when the last stage ends at one and its result is healthy at the scene's dt, that stage
+is fitted once more there (the data's discretisation; a note says so).
 
 **Uncertainty**: standard deviations from the Gauss–Newton covariance
 ``s² (JᵀJ)⁻¹`` at the optimum (``s² = RSS / (m − p)``,
