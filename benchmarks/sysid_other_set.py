@@ -6,8 +6,7 @@ The ``reduced`` preset holds set 0 of the silhouette cases only. This script ide
 set) with the ``reduced`` preset's settings, once per ``--refine-velocity`` choice
 (:attr:`jaxmpm.fit.FitConfig.refine_velocity`: auto, yes, no) and ``--scan`` choice
 (:attr:`jaxmpm.fit.FitConfig.scan`: ``auto``, ``none`` or decade offsets, choices separated by
-``;``), and
-appends the harness's rows to ``--out``. Session 33 chose the automatic velocity refit on set 0
+``;``), and appends the harness's rows to ``--out``. Session 33 chose the automatic velocity refit on set 0
 and checked it on set 1 with:
 
     python benchmarks/sysid_other_set.py --cases sand-bunny-1-silhouettes-cpic,newtonian-armadillo-1-silhouettes-cpic \\

@@ -281,6 +281,11 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
     return float(before[-1]) if len(before) else 0.0
 
 
+def _last_stage_of(plan: Sequence[Stage]) -> dict[str, int]:
+    """Each fitted name's last stage in ``plan`` (the one whose result and std it keeps)."""
+    return {n: i for i, stage in enumerate(plan) for n in stage.names}
+
+
 def _first_interval_stage(stage: Stage, times, frame_dt: float) -> Stage:
     """``stage`` (a velocity stage) shortened to the first observed interval.
 
@@ -515,7 +520,7 @@ def fit(
     losses: list[float] = []
     records: list[dict] = []
     std: dict[str, np.ndarray] = {}
-    last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+    last_stage_of = _last_stage_of(plan)
     scan = (() if observation.tracks_particles else SCAN_DECADES) if c.scan is None else tuple(c.scan)
     scan_left = set() if not scan else {
         n for n in names if isinstance(transform_of(n), Log10) and np.ndim(initial[n]) == 0}
@@ -642,7 +647,7 @@ def fit(
             if same_window and rest and rest[0].names == vel_names:
                 rest = rest[1:]  # the velocity was just fitted on exactly this window
             plan[si + 1:] = rest
-            last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+            last_stage_of = _last_stage_of(plan)
             if t_c <= eps:
                 notes.append("with the fitted velocity the body is in contact from the first frames: the velocity "
                              "is refitted with the other parameters")
@@ -668,7 +673,7 @@ def fit(
                              "parameters again there")
                 model = at_scene
                 plan.append(replace(stage, label=f"{stage.label or 'all frames'}, again at the scene's dt"))
-                last_stage_of = {n: i for i, s in enumerate(plan) for n in s.names}
+                last_stage_of = _last_stage_of(plan)
             else:
                 notes.append(f"the result stays at {model.substeps} substeps/frame: at the scene's {scene_substeps} "
                              f"it is unhealthy ({why})")
