@@ -240,6 +240,13 @@ class Stage:
     max_steps: int | None = None
 
 
+#: Contact in a rollout (:func:`contact_time`, no per-particle tracks): a frame interval whose
+#: displacements depart from one translation by more than this fraction of a grid cell. Free
+#: flight departs by rounding (1e-6 to 3e-5 of a cell in float32); a body that begins to touch a
+#: collider within the interval, by 3-12 % of a cell in the sysid benchmark's scenes.
+CONTACT_ROLLOUT_TOL = 2e-3
+
+
 def _velocity_dispersion(x: np.ndarray) -> np.ndarray:
     """Per interval, how far the displacements depart from a common translation (95th
     percentile of ``|d_p − median d|``): 0 in free flight, large after contact."""
@@ -254,23 +261,27 @@ def contact_time(model: Model, params: Params, observation: Observation, *, tol:
 
     In free flight every particle moves with one velocity (no stress), so contact shows
     as the first frame interval whose displacements depart from a common translation by
-    more than ``tol`` (default 5 % of a grid cell per frame, 95th percentile over the
-    points). Uses the observed tracks when they are per-particle (``point_ids ==
-    "particles"``), else a rollout at ``params`` (the initial guess; :func:`fit` re-detects
-    contact with the fitted velocity and refits it on a shorter window if needed). Returns None when nothing touches within the data, and
-    0.0 when the body is in contact from the start.
+    more than ``tol`` (95th percentile over the points). Uses the observed tracks when they
+    are per-particle (``point_ids == "particles"``; default ``tol``: 5 % of a grid cell per
+    frame, above the tracks' noise), else a rollout at ``params`` (the initial guess;
+    :func:`fit` re-detects contact with the fitted velocity and refits it on a shorter window
+    if needed), whose free flight departs from a translation by rounding only (default
+    ``tol``: ``CONTACT_ROLLOUT_TOL`` of a cell, so an interval in which the body only begins
+    to touch counts as contact). Returns None when nothing touches within the data, and 0.0
+    when the body is in contact from the start.
     """
     from .step import simulate
 
     times = np.asarray(observation.times, float)
-    tol = 0.05 * model.grid.dx if tol is None else tol
     if observation.tracks_particles and len(times) >= 2:
+        tol = 0.05 * model.grid.dx if tol is None else tol
         x = np.asarray(observation.positions, float)
         disp = _velocity_dispersion(x)
         scale = np.diff(times) / model.frame_dt  # displacement tolerance per observed interval
         bad = np.flatnonzero(~(disp <= tol * np.maximum(scale, 1e-9)))
         return None if len(bad) == 0 else float(times[bad[0]])
 
+    tol = CONTACT_ROLLOUT_TOL * model.grid.dx if tol is None else tol
     x = np.asarray(simulate(model, params, checkpoint=None, frames=frames_needed(model, times)).x, float)
     disp = _velocity_dispersion(x)
     bad = np.flatnonzero(~(disp <= tol))
@@ -559,7 +570,7 @@ def fit(
                 y0, picked = better_start(stage_residuals, y0, guess)
                 fall_velocity = None  # the first velocity stage only: later ones start from its result
                 y_all.update(y0)
-                notes.append(f"stage {si + 1}: the silhouettes' free fall gives velocity "
+                notes.append(f"stage {si + 1}: the observed free fall gives velocity "
                              f"{np.round(np.asarray(picked['candidate'], float), 3).tolist()} m/s; loss at the guess "
                              f"{picked['start_loss']:.4g}, there {picked['candidate_loss']:.4g}: started from "
                              + ("it" if picked["taken"] else "the guess"))
@@ -793,18 +804,35 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
 
 
 def free_fall_velocity(model, params: Params, observation: Observation) -> np.ndarray | None:
-    """The initial velocity ``(3,)`` (m/s, at t = 0) of a single 3D body that the observed
-    silhouettes' free fall gives (:func:`jaxmpm.reconstruct.free_fall.free_fall`: the body's
-    triangulated centre over its leading rigid frames, ``v0`` from a parabola or, from two
-    frames, corrected by the scene's gravity), or None (no masks, not one 3D body, fewer
-    than two free-fall frames)."""
-    if observation.masks is None or model.dim != 3 or len(model.bodies) != 1:
+    """The initial velocity ``(D,)`` (m/s, at t = 0) of a single body that the observed free
+    fall gives, or None (not one body, neither untracked points nor 3D masks, fewer than two
+    free-fall frames).
+
+    From points without per-particle ids (``observation.positions``): the mean of the points
+    seen in the first two observed frames, over the first observed interval (the one the
+    first velocity stage fits), with the simulator's free flight undone exactly (symplectic
+    Euler at the model's substep ``h``: over a time ``T`` the centre moves ``v T + g T (T +
+    h) / 2``). From 3D silhouettes: :func:`jaxmpm.reconstruct.free_fall.free_fall` (the
+    body's triangulated centre over its leading rigid frames, ``v0`` from a parabola or, from
+    two frames, corrected by the scene's gravity).
+    """
+    if len(model.bodies) != 1:
+        return None
+    times = np.asarray(observation.times, float)
+    gravity = np.asarray(params["gravity"], float)
+    if observation.positions is not None and not observation.tracks_particles and len(times) >= 2:
+        x = np.asarray(observation.positions[:2], float)
+        seen = np.all(np.isfinite(x), axis=(0, 2))
+        if not seen.any():
+            return None
+        span, h = times[1] - times[0], model.frame_dt / model.substeps
+        v = (x[1, seen].mean(axis=0) - x[0, seen].mean(axis=0)) / span - gravity * (span + h) / 2
+        return v - gravity * times[0]
+    if observation.masks is None or model.dim != 3:
         return None
     from .reconstruct.free_fall import free_fall
 
     cameras = observation_cameras(observation)
-    times = np.asarray(observation.times, float)
-    gravity = np.asarray(params["gravity"], float)
     fall = free_fall(observation.masks, cameras, times, model.grid.dx, gravity=gravity)
     if fall.velocity is None or not np.all(np.isfinite(fall.velocity)):
         return None
