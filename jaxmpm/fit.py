@@ -15,9 +15,9 @@ RGB, probes) with a solver of :mod:`jaxmpm.identify.solvers`:
 **Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone from
 the pre-contact frames, when a ``velocity`` is among the names (without per-particle tracks,
 whose contact is found in a rollout of the guess, first from the first observed interval,
-then again from the frames before the contact of that velocity; from silhouettes the first
-velocity stage starts from the better of the guess and the silhouettes' free fall,
-:func:`free_fall_velocity`); (2) the other parameters on
+then again from the frames before the contact of that velocity; from silhouettes or untracked
+points the first velocity stage starts from the better of the guess and the observed free
+fall, :func:`free_fall_velocity`); (2) the other parameters on
 the frames up to ``warmup_frames`` after contact; (3) the same on all frames. A stage whose
 rollout is unhealthy (:func:`jaxmpm.step.unhealthy`: NaN, a CFL number above ``cfl_limit``,
 energy growth, a stress-wave CFL number above 1) at its starting point, or whose
@@ -165,12 +165,15 @@ class FitConfig:
             residuals and Jacobian per point. None (default): :data:`SCAN_DECADES` when the
             observation has no per-particle tracks (masks, images or untracked points), no
             scan from tracks of every particle (whose loss has no such plateaus); ``()``: no
-            scan.
-        free_fall_start: from silhouettes, start the first velocity stage from the velocity
-            the masks' free fall gives (:func:`free_fall_velocity`) when its stage loss is
-            lower than the guess's: the silhouette loss is far from quadratic at a guess
-            of rest, where Levenberg–Marquardt creeps towards the answer over 15–20 trust-region
-            steps; two evaluations decide.
+            scan. A fit whose scan moved its start and that does not converge is run again
+            from the guess without the scan, and the lower loss of the last stage decides
+            (a note says so; ``FitResult.timing["other_start"]`` has the other).
+        free_fall_start: from silhouettes or untracked points, start the first velocity stage
+            from the velocity the observed free fall gives (:func:`free_fall_velocity`) when
+            its stage loss is lower than the guess's: the silhouette loss is far from
+            quadratic at a guess of rest, where Levenberg–Marquardt creeps towards the answer
+            over 15–20 trust-region steps, and a Chamfer loss between particle lattices has
+            minima one particle spacing apart; two evaluations decide.
     """
 
     method: str = "lm"
@@ -375,7 +378,8 @@ class FitResult:
             scale the loss resolves where it is rough (``FitConfig.resolution``; the module's
             "Uncertainty").
         loss: loss after each accepted iteration, all stages in order (first = initial).
-        iterations: solver iterations taken (all stages).
+        iterations: solver iterations taken (all stages; both starts where the fit was run
+            again from the guess, :attr:`FitConfig.scan`).
         seconds: wall time.
         converged: whether every parameter's last stage met its tolerance.
         message: a human-readable status (says so when the fit did not converge).
@@ -386,10 +390,14 @@ class FitResult:
             its ``timing`` (``start_s``: the first residuals and Jacobian, compilation
             included; ``first_step_s``, ``step_s`` (median), ``steps_s`` (all), ``compile_s``
             (the first step's excess over the median); ``checks_s``: the Gauss–Newton stop
-            checks; ``rejected_steps``, ``escapes``; ``uncertainty_s``).
+            checks; ``rejected_steps``, ``escapes``; ``uncertainty_s``). Where the fit was run
+            again from the guess, the kept start's stages.
         notes: remarks (dt halvings, skipped stages).
         timing: where the time went (seconds): ``total_s``, ``planning_s`` (contact detection
-            for the stages), ``solver_s``, ``compile_s`` (estimated), ``uncertainty_s``.
+            for the stages), ``solver_s``, ``compile_s`` (estimated), ``uncertainty_s``; where
+            the fit was run again from the guess, ``other_start`` (the start not kept:
+            ``start``, ``total_s``, ``iterations``, ``loss`` of its last stage, ``values``,
+            ``converged``) and ``total_s`` over both.
     """
 
     params: Params
@@ -471,6 +479,7 @@ def fit(
     """
     start = time.perf_counter()
     say = log or (lambda msg: None)
+    scene_model = model
     if not isinstance(config, FitConfig):
         raise JaxmpmError(f"config must be a FitConfig, got {type(config).__name__}")
     config.check()
@@ -709,7 +718,7 @@ def fit(
         "compile_s": sum(t.get("compile_s", 0.0) for t in stage_timing),
         "uncertainty_s": sum(t.get("uncertainty_s", 0.0) for t in stage_timing),
     }
-    return FitResult(
+    result = FitResult(
         params=final_params,
         values=values,
         std=std,
@@ -724,6 +733,44 @@ def fit(
         stages=records,
         notes=notes,
         timing=timing,
+    )
+    if not converged and any(r.get("scan", {}).get("moved") for r in records):
+        result = _also_from_the_guess(result, scene_model, params, observation, names, c, progress=progress, log=log)
+    return result
+
+
+def _also_from_the_guess(scanned: FitResult, model: Model, params: Params, observation: Observation,
+                         names: Sequence[str], config: FitConfig, *, progress, log) -> FitResult:
+    """A fit whose scan moved its start and that then did not converge, fitted again from
+    the guess without the scan; the result with the lower loss of the last stage is kept
+    (both end on the same frames at the same dt, or the scanned one is kept). A scan looks
+    at one parameter at a time and can start a stage in another basin than the guess's; a
+    fit that does not converge there may have stopped in a worse one."""
+    say = log or (lambda msg: None)
+    say("the fit from the scanned start did not converge: fitting again from the guess without the scan")
+    offset = scanned.iterations
+    other = fit(model, params, observation, names, replace(config, scan=()), log=log,
+                progress=None if progress is None else (lambda i, value: progress(i + offset, value)))
+    a, b = scanned.stages[-1], other.stages[-1]
+    comparable = a["frames"] == b["frames"] and a["substeps"] == b["substeps"] and a["loss"] and b["loss"]
+    take_other = bool(comparable and b["loss"][1] < a["loss"][1])
+    kept, dropped = (other, scanned) if take_other else (scanned, other)
+    which = ("the guess without the scan" if take_other else "the scanned start")
+    note = (f"fitted from the scanned start and from the guess without it: last-stage loss {a['loss'][1]:.4g} "
+            f"and {b['loss'][1]:.4g}; kept {which}" if comparable else
+            "fitted from the scanned start and from the guess without it; their last stages differ in frames or dt, "
+            "so the scanned start's result is kept")
+    say(note)
+    return replace(
+        kept,
+        iterations=scanned.iterations + other.iterations,
+        seconds=scanned.seconds + other.seconds,
+        notes=kept.notes + [note],
+        timing={**kept.timing, "total_s": scanned.timing["total_s"] + other.timing["total_s"],
+                "other_start": {"start": "scan" if take_other else "guess", "total_s": dropped.timing["total_s"],
+                                "iterations": dropped.iterations, "loss": dropped.stages[-1]["loss"],
+                                "values": {n: _plain(v) for n, v in dropped.values.items()},
+                                "converged": dropped.converged}},
     )
 
 

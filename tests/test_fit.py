@@ -129,3 +129,54 @@ def test_the_default_scans_only_fits_without_per_particle_tracks():
     scanned = scan_of(untracked)
     assert scanned["points"] == 1 + len(SCAN_DECADES) and scanned["moved"] == {"mu": 2.0}
     assert scan_of(untracked, scan=()) is None
+
+
+def test_a_scanned_fit_that_does_not_converge_is_also_run_from_the_guess(monkeypatch):
+    """A scan looks at one parameter at a time and can start a stage in another basin: a fit
+    whose scan moved its start and that did not converge is run again from the guess without
+    the scan, and the lower loss of the last stage decides. Here the scan moves μ from 2.5
+    decades below the truth to 0.5 and one LM step cannot converge: the scanned start is
+    kept, the guess's run is reported beside it; then, with the other run's loss made the
+    lower, it is kept."""
+    import importlib
+    from dataclasses import replace
+
+    fit_module = importlib.import_module("jaxmpm.fit")
+    truth, _ = MATERIAL_CASES["newtonian"]
+    true_scene = load_scene(_spec(truth, "newtonian"))
+    traj = simulate(true_scene.model, true_scene.params)
+    start = load_scene(_spec({"model": "newtonian", **truth, "mu": truth["mu"] * 10**-2.5}, "newtonian"))
+    untracked = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x))
+    config = FitConfig(max_steps=1, stages=None, uncertainty=False)
+    logs = []
+    result = fit(start.model, start.params, untracked, ["mu"], config, log=logs.append)
+    with monkeypatch.context() as patched:  # each start alone
+        patched.setattr(fit_module, "_also_from_the_guess", lambda scanned, *args, **kwargs: scanned)
+        scanned = fit(start.model, start.params, untracked, ["mu"], config)
+    guess = fit(start.model, start.params, untracked, ["mu"], replace(config, scan=()))
+    moved = scanned.stages[0]["scan"]["moved"]
+    assert not scanned.converged and list(moved) == ["mu"]
+    assert result.stages[0]["scan"]["moved"] == moved  # the scanned start kept: its loss is lower
+    np.testing.assert_array_equal(result.values["mu"], scanned.values["mu"])
+    other = result.timing["other_start"]
+    assert other["start"] == "guess" and other["loss"] == guess.stages[-1]["loss"]
+    np.testing.assert_array_equal(other["values"]["mu"], guess.values["mu"])
+    assert result.iterations == scanned.iterations + guess.iterations
+    assert any("fitting again from the guess" in line for line in logs)
+    assert "kept the scanned start" in result.notes[-1]
+
+    # the choice itself: the guess's run kept where its last stage's loss is lower, and not
+    # compared where the two ended on different dt
+    def fake_fit(*args, **kwargs):
+        return replace(guess, stages=[{**guess.stages[-1], "loss": [1.0, 0.1 * scanned.stages[-1]["loss"][1]]}])
+
+    monkeypatch.setattr(fit_module, "fit", fake_fit)
+    chosen = fit_module._also_from_the_guess(scanned, start.model, start.params, untracked, ["mu"], config,
+                                             progress=None, log=None)
+    assert chosen.values is guess.values and chosen.timing["other_start"]["start"] == "scan"
+    assert "kept the guess without the scan" in chosen.notes[-1]
+    finer = replace(guess, stages=[{**guess.stages[-1], "substeps": 2 * guess.stages[-1]["substeps"], "loss": [1.0, 0.0]}])
+    monkeypatch.setattr(fit_module, "fit", lambda *a, **k: finer)
+    chosen = fit_module._also_from_the_guess(scanned, start.model, start.params, untracked, ["mu"], config,
+                                             progress=None, log=None)
+    assert chosen.values is scanned.values and "differ in frames or dt" in chosen.notes[-1]
