@@ -364,6 +364,7 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
         "load_average": os.getloadavg()[0],
         "substeps": int(result.substeps),
         "stages": [{k: s[k] for k in ("label", "iterations", "converged", "seconds")} for s in result.stages],
+        "other_start": result.timing.get("other_start"),  # the start not kept, where the fit ran from two
         "dtype": dtype,
         "resolution": resolution,
         "refine_velocity": refine_velocity,
