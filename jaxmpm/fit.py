@@ -749,8 +749,13 @@ def _also_from_the_guess(scanned: FitResult, model: Model, params: Params, obser
     say = log or (lambda msg: None)
     say("the fit from the scanned start did not converge: fitting again from the guess without the scan")
     offset = scanned.iterations
-    other = fit(model, params, observation, names, replace(config, scan=()), log=log,
-                progress=None if progress is None else (lambda i, value: progress(i + offset, value)))
+    try:
+        other = fit(model, params, observation, names, replace(config, scan=()), log=log,
+                    progress=None if progress is None else (lambda i, value: progress(i + offset, value)))
+    except FitError as err:  # the scanned start's result is not lost
+        note = f"fitting again from the guess without the scan failed ({err}); the scanned start's result is kept"
+        say(note)
+        return replace(scanned, notes=scanned.notes + [note])
     a, b = scanned.stages[-1], other.stages[-1]
     comparable = a["frames"] == b["frames"] and a["substeps"] == b["substeps"] and a["loss"] and b["loss"]
     take_other = bool(comparable and b["loss"][1] < a["loss"][1])

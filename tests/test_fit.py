@@ -180,3 +180,11 @@ def test_a_scanned_fit_that_does_not_converge_is_also_run_from_the_guess(monkeyp
     chosen = fit_module._also_from_the_guess(scanned, start.model, start.params, untracked, ["mu"], config,
                                              progress=None, log=None)
     assert chosen.values is scanned.values and "differ in frames or dt" in chosen.notes[-1]
+
+    def failing_fit(*args, **kwargs):
+        raise fit_module.FitError("unhealthy at the starting point")
+
+    monkeypatch.setattr(fit_module, "fit", failing_fit)
+    chosen = fit_module._also_from_the_guess(scanned, start.model, start.params, untracked, ["mu"], config,
+                                             progress=None, log=None)
+    assert chosen.values is scanned.values and "failed (unhealthy at the starting point)" in chosen.notes[-1]
