@@ -130,6 +130,28 @@ def test_run_case_hands_its_choices_to_the_fit(monkeypatch):
     assert config.scan == (-1.0, 2.0) and config.refine_velocity is True and config.resolution is True
 
 
+def test_a_row_records_the_start_not_kept(monkeypatch):
+    """Where the fit ran from two starts (a scanned fit that did not converge), the row keeps
+    the other run's figures (``FitResult.timing["other_start"]``); None otherwise."""
+    from jaxmpm.bench_sysid import FIT_NAMES
+    from jaxmpm.fit import FitResult
+
+    fit_module = importlib.import_module("jaxmpm.fit")
+    preset, cases = preset_cases("ci")
+    values = {n: 1.0 for n in FIT_NAMES[cases[0].material]} | {"velocity": [0.0, -1.0, 0.0]}
+    other = {"start": "guess", "total_s": 2.0, "iterations": 4, "loss": [0.5, 0.25], "values": values,
+             "converged": False}
+    for timing in ({"total_s": 3.0, "other_start": other}, {"total_s": 1.0}):
+        def fake(*args, timing=timing, **kwargs):
+            return FitResult(params=None, values=values, std={}, loss=[1.0], iterations=3, seconds=1.0,
+                             converged=False, message="m", substeps=20, timing=timing)
+
+        monkeypatch.setattr(fit_module, "fit", fake)
+        row = run_case(cases[0], preset)
+        assert row["other_start"] == timing.get("other_start")
+        json.dumps(row)
+
+
 def test_find_case_by_key():
     preset, case = find_case("newtonian-small-0-tracks-cpic")
     assert case == Case("newtonian", "small", 0, "tracks", "cpic") and preset == preset_cases("reduced")[0]
