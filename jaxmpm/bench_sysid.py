@@ -155,7 +155,7 @@ def truth_scene(key: str, preset_name: str = "reduced", dtype=None):
     preset, case = find_case(key, preset_name)
     truth = truth_values(case.material, case.index)
     kwargs = {} if dtype is None else {"dtype": dtype}
-    return load_scene(scene_spec(case, preset, truth, (0.0, -1.0, 0.0)), **kwargs), case, truth
+    return load_scene(scene_spec(case, preset, truth, TRUE_VELOCITY), **kwargs), case, truth
 
 
 # --------------------------------------------------------------------------- scenes
@@ -282,6 +282,55 @@ def code_version() -> str:
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
+TRUE_VELOCITY = (0.0, -1.0, 0.0)  # every case's body is thrown at 1 m/s downwards (m/s)
+
+
+def observe_case(case: Case, preset: Preset, dtype=None):
+    """Simulate ``case`` at its true values (always with CPIC) and observe it as its
+    supervision says: every particle's positions (``tracks``) or the rig's rendered masks and
+    images (``silhouettes``). Returns ``(observation, truth values, true velocity, ground-truth
+    scene)``, or an error message where the ground truth is unstable."""
+    from .identify.residuals import make_fit_renderer
+    from .observe import Observation
+    from .render import render_views
+    from .scene import load_scene
+    from .step import simulate
+
+    kwargs = {} if dtype is None else {"dtype": dtype}
+    truth = truth_values(case.material, case.index)
+    gt = load_scene(scene_spec(replace(case, mode="cpic"), preset, truth, TRUE_VELOCITY), **kwargs)
+    traj = simulate(gt.model, gt.params, checkpoint=None)
+    bad = traj.first_unstable_frame()
+    if bad is not None:
+        return f"ground truth unstable at frame {bad}"
+    x = np.asarray(traj.x)
+    obs_kwargs = {"times": np.asarray(traj.times)}
+    if case.supervision == "tracks":
+        obs_kwargs.update(positions=x, point_ids="particles")
+    else:
+        rendered = render_views(x, rig(preset), make_fit_renderer("volume", gt.model))
+        obs_kwargs.update(masks=rendered["masks"], images=rendered["images"], intrinsics=rendered["intrinsics"],
+                          cam_to_world=rendered["cam_to_world"])
+    return Observation(**obs_kwargs, scene=gt.to_json()), truth, TRUE_VELOCITY, gt
+
+
+def start_scene(case: Case, preset: Preset, guess: dict, dtype=None):
+    """The scene a fit of ``case`` starts from: the material at ``guess``, the body at rest."""
+    from .scene import load_scene
+
+    kwargs = {} if dtype is None else {"dtype": dtype}
+    return load_scene(scene_spec(case, preset, guess, velocity=(0.0, 0.0, 0.0)), **kwargs)
+
+
+def fit_config(case: Case, preset: Preset, **options):
+    """The :class:`~jaxmpm.fit.FitConfig` the harness fits ``case`` with (silhouettes: the
+    silhouette term with RGB at 0.1, the preset's pixels per view); ``options``: further fields."""
+    from .fit import FitConfig
+
+    weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
+    return FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None, **options)
+
+
 def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | None = None,
              resolution: bool = False, refine_velocity: bool | None = None,
              scan: Sequence[float] | None = None) -> dict:
@@ -305,42 +354,21 @@ def run_case(case: Case, preset: Preset, dtype: str = "float32", guess: dict | N
 
     jdtype = jnp.dtype(dtype)
 
-    from .fit import FitConfig, fit
-    from .identify.residuals import make_fit_renderer
-    from .observe import Observation
-    from .render import render_views
-    from .scene import load_scene
-    from .step import simulate
+    from .fit import fit
 
-    truth = truth_values(case.material, case.index)
-    v0 = (0.0, -1.0, 0.0)
-    gt_case = replace(case, mode="cpic")  # the truth is always simulated with CPIC
-    gt = load_scene(scene_spec(gt_case, preset, truth, v0), dtype=jdtype)
     t0 = time.perf_counter()
-    traj = simulate(gt.model, gt.params, checkpoint=None)
-    bad = traj.first_unstable_frame()
-    if bad is not None:
-        return {"case": asdict(case), "key": case.key, "error": f"ground truth unstable at frame {bad}"}
-    x = np.asarray(traj.x)
-    obs_kwargs = {"times": np.asarray(traj.times)}
-    if case.supervision == "tracks":
-        obs_kwargs.update(positions=x, point_ids="particles")
-    else:
-        renderer = make_fit_renderer("volume", gt.model)
-        rendered = render_views(x, rig(preset), renderer)
-        obs_kwargs.update(masks=rendered["masks"], images=rendered["images"], intrinsics=rendered["intrinsics"],
-                          cam_to_world=rendered["cam_to_world"])
-    obs = Observation(**obs_kwargs, scene=gt.to_json())
+    observed = observe_case(case, preset, jdtype)
+    if isinstance(observed, str):
+        return {"case": asdict(case), "key": case.key, "error": observed}
+    obs, truth, v0, gt = observed
     generate_s = time.perf_counter() - t0
 
     guess = dict(INITIAL_GUESS[case.material] if guess is None else guess)
-    start = load_scene(scene_spec(case, preset, guess, velocity=(0.0, 0.0, 0.0)), dtype=jdtype)
+    start = start_scene(case, preset, guess, jdtype)
     names = FIT_NAMES[case.material] + ["velocity"]
-    weights = None if case.supervision == "tracks" else {"silhouette": 1.0, "rgb": 0.1}
     t0, c0 = time.perf_counter(), time.process_time()
-    config = FitConfig(weights=weights, max_steps=preset.max_steps, num_pixels=preset.pixels, colors=None,
-                       resolution=resolution, refine_velocity=refine_velocity,
-                       scan=None if scan is None else tuple(float(d) for d in scan))
+    config = fit_config(case, preset, resolution=resolution, refine_velocity=refine_velocity,
+                        scan=None if scan is None else tuple(float(d) for d in scan))
     result = fit(start.model, start.params, obs, names, config, **fit_reporters(t0))
     seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
     err = errors(FIT_NAMES[case.material], result.values, truth)

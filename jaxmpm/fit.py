@@ -220,6 +220,12 @@ class FitConfig:
                 isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) for d in self.scan)):
             raise JaxmpmError(f"scan must be a sequence of finite decade offsets, got {self.scan!r}")
 
+    def objective_options(self) -> dict:
+        """The keyword arguments of :func:`jaxmpm.identify.build_objective` this configuration
+        fits with (all but the frame window)."""
+        return dict(weights=self.weights, probes=self.probes, renderer=self.renderer, num_pixels=self.num_pixels,
+                    colors=self.colors, checkpoint=self.checkpoint, cfl_limit=self.cfl_limit)
+
 
 # --------------------------------------------------------------------------- stages
 
@@ -497,8 +503,7 @@ def fit(
             raise JaxmpmError(f"initial value of {n!r} must be > 0 (fitted in log10), got {v}")
         if not np.all(np.isfinite(v)):
             raise JaxmpmError(f"initial value of {n!r} is not finite: {v}")
-    objective_options = dict(weights=c.weights, probes=c.probes, renderer=c.renderer, num_pixels=c.num_pixels,
-                             colors=c.colors, checkpoint=c.checkpoint, cfl_limit=c.cfl_limit)
+    objective_options = c.objective_options()
     # fail early on unusable data (before any rollout)
     build_objective(model, observation, **objective_options)
 

@@ -167,3 +167,28 @@ def test_a_float64_case_needs_x64_from_its_caller():
         run_case(case, preset, "float64")
     with pytest.raises(ValueError, match="'float32' or 'float64'"):
         run_case(case, preset, "float16")
+
+
+def test_the_loss_at_script_evaluates_the_fits_loss_at_chosen_points(tmp_path, capsys):
+    """``benchmarks/sysid_loss_at.py``: from tracks of every particle the loss is 0 at the truth
+    (to round-off) and grows with a parameter's or the velocity's offset; a line's ends are its two points."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "sysid_loss_at.py"
+    spec = importlib.util.spec_from_file_location("sysid_loss_at", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "loss.jsonl"
+    assert module.main(["--preset", "ci", "--case", "newtonian-box-0-tracks-cpic", "--offset", "mu=0.05,0.5",
+                        "--offset", "velocity.y=0.05", "--at", 'slow={"velocity": [0, -0.9, 0]}',
+                        "--line", "truth,slow,3", "--out", str(out)]) == 0
+    rows = {r["label"]: r for r in map(json.loads, out.read_text().splitlines())}
+    assert rows["truth"]["loss"] < 1e-12  # round-off of the values' log10 round trip
+    assert 0.0 < rows["mu +0.05"]["loss"] < rows["mu +0.5"]["loss"]
+    assert rows["velocity.y +0.05"]["loss"] > 0.0
+    assert rows["truth -> slow 0"]["loss"] == rows["truth"]["loss"] and rows["truth -> slow 1"]["loss"] == rows["slow"]["loss"]
+    assert 0.0 < rows["truth -> slow 0.5"]["loss"] < rows["slow"]["loss"]
+    with pytest.raises(SystemExit):  # a malformed point is the parser's error, before any simulation
+        module.main(["--preset", "ci", "--case", "newtonian-box-0-tracks-cpic", "--offset", "mu"])
+    assert "expected NAME=d1,d2" in capsys.readouterr().err
