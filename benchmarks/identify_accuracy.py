@@ -74,6 +74,7 @@ def main() -> None:
     ap.add_argument("--rgb", type=float, default=0.0, help="weight of the masked-RGB term in the fit")
     ap.add_argument("--collider-rgb", type=float, default=0.0, help="weight of the plates' colours in the surfel fit")
     ap.add_argument("--refine-velocity", action="store_true", help="refit the velocity with the material")
+    ap.add_argument("--offset", action="store_true", help="fit the body's offset with its velocity")
     ap.add_argument("--at-truth", action="store_true",
                     help="also simulate the reconstructed scene with the true parameters and velocity and report its "
                          "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
@@ -107,7 +108,8 @@ def main() -> None:
                 rec.spec = copy.deepcopy(rec.spec)
                 rec.spec["colliders"][-1] = {**COLLIDERS[args.collider], "name": "collider", "contact": "sticky"}
             scene = load_scene(write_scene(rec, Path(tmp) / f"scene_{kind}"))
-            result = identify_material(scene, obs, names + ["velocity"], max_steps=args.max_steps,
+            result = identify_material(scene, obs, names + ["velocity"] + (["offset"] if args.offset else []),
+                                       max_steps=args.max_steps,
                                        renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb,
                                        refine_velocity=args.refine_velocity)
             evaluation_notes: list[str] = []
@@ -122,6 +124,7 @@ def main() -> None:
                 "errors": errors(names, result.values, truth),
                 "velocity": np.asarray(result.values["velocity"]).tolist(),
                 "velocity_error": float(np.linalg.norm(np.asarray(result.values["velocity"]) - truth_v)),
+                "offset": np.asarray(result.values["offset"]).tolist() if "offset" in result.values else None,
                 "chamfer_mesh": chamfer["mesh"], "chamfer_disks": chamfer["disks"],
                 "body_iou_min": float(np.min(rec.body_iou)), "particles": len(rec.points),
                 "free_fall_frames": rec.free_fall.frames,

@@ -12,7 +12,8 @@ RGB, probes) with a solver of :mod:`jaxmpm.identify.solvers`:
   returned (GIC). The gradient is forward mode by default (``grad="fwd"``).
 * ``"bfgs"``: ``optimistix.BFGS`` on the scalar loss (forward-mode gradients).
 
-**Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone from
+**Stages** (``stages="auto"``, PAC-NeRF's schedule): (1) the initial velocity alone (with
+the body's ``offset`` when it is fitted too: :data:`KINEMATIC`) from
 the pre-contact frames, when a ``velocity`` is among the names (without per-particle tracks,
 whose contact is found in a rollout of the guess, first from the first observed interval,
 then again from the frames before the contact of that velocity; from silhouettes or untracked
@@ -82,6 +83,7 @@ __all__ = [
     "fit",
     "fit_scene",
     "plan_stages",
+    "KINEMATIC",
     "contact_time",
 ]
 
@@ -97,6 +99,12 @@ ADAM_WINDOW_STEPS = 50
 #: velocity (images or untracked points; see :func:`_first_interval_stage`).
 MAX_VELOCITY_REFITS = 3
 
+
+#: The body's initial motion and placement: fitted in the pre-contact stage, before the
+#: material, and refitted with it or held as ``refine_velocity`` says. A reconstructed body's
+#: placement error would otherwise pass into a velocity fitted to the first frames alone
+#: (docs/identify.md, session 36).
+KINEMATIC = ("velocity", "offset")
 
 #: The command lines' ``--refine-velocity`` choices: :attr:`FitConfig.refine_velocity`'s values.
 REFINE_VELOCITY = {"auto": None, "yes": True, "no": False}
@@ -335,8 +343,8 @@ def plan_stages(
     """PAC-NeRF's schedule for ``names`` (see the module docstring) and notes about it;
     ``refine_velocity``: :attr:`FitConfig.refine_velocity`."""
     names = list(names)
-    vel = [n for n in names if leaf_name(n) == "velocity"]
-    rest = [n for n in names if leaf_name(n) != "velocity"]
+    vel = [n for n in names if leaf_name(n) in KINEMATIC]
+    rest = [n for n in names if leaf_name(n) not in KINEMATIC]
     times = np.asarray(observation.times, float)
     t_end = float(times.max())
     notes = []
@@ -525,7 +533,8 @@ def fit(
                 raise JaxmpmError(f"stage {s.label or s.names}: {unknown} are not among the fitted names {names}")
     for note in notes:
         say(note)
-    vel_names = [n for n in names if leaf_name(n) == "velocity"]
+    vel_names = [n for n in names if leaf_name(n) in KINEMATIC]
+    velocity_names = [n for n in vel_names if leaf_name(n) == "velocity"]
     eps = 1e-3 * model.frame_dt  # observed times may be float32
     # contact found in a rollout of the initial guess (no per-particle tracks): the velocity
     # starts on the first observed interval and contact is re-detected after each velocity stage
@@ -536,7 +545,7 @@ def fit(
         plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
     replans_left = MAX_VELOCITY_REFITS if t_guess is not None else 0
     fall_velocity = None
-    if t_guess is not None and c.free_fall_start and len(vel_names) == 1:
+    if t_guess is not None and c.free_fall_start and len(velocity_names) == 1:
         fall_velocity = free_fall_velocity(model, params, observation)
 
     y_all = {n: to_unconstrained(n, jnp.asarray(v, jnp.result_type(float))) for n, v in initial.items()}
@@ -580,7 +589,8 @@ def fit(
                              f"loss {scanned['start_loss']:.4g} -> {scanned['best_loss']:.4g}")
                 say(notes[-1])
             if fall_velocity is not None and snames == vel_names:
-                guess = {vel_names[0]: to_unconstrained(vel_names[0], jnp.asarray(fall_velocity, y0[vel_names[0]].dtype))}
+                v_name = velocity_names[0]
+                guess = {v_name: to_unconstrained(v_name, jnp.asarray(fall_velocity, y0[v_name].dtype))}
                 y0, picked = better_start(stage_residuals, y0, guess)
                 fall_velocity = None  # the first velocity stage only: later ones start from its result
                 y_all.update(y0)

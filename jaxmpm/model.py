@@ -5,7 +5,7 @@ may fit or sweep live in a separate ``params`` pytree::
 
     params = {
         "gravity": (D,) m/s^2,
-        "bodies": ({"velocity": (D,), "density": (), <material parameters>: ()}, ...),
+        "bodies": ({"velocity": (D,), "offset": (D,), "density": (), <material parameters>: ()}, ...),
         "colliders": ({"friction": (), "restitution": ()}, ...),
     }
 
@@ -185,13 +185,15 @@ class Model(eqx.Module):
 def initial_state(model: Model, params: Params) -> State:
     """The state at t = 0 from the model's reference configuration and ``params``.
 
-    Differentiable with respect to each body's ``velocity`` and ``density``.
+    Differentiable with respect to each body's ``velocity``, ``offset`` (a rigid translation of
+    its reference positions; a params pytree without it places the body at its reference) and
+    ``density``.
     """
     xs, vs, masses, vols, auxs = [], [], [], [], []
     for body, bp in zip(model.bodies, params["bodies"]):
         n = body.num_particles
         dtype = body.x0.dtype
-        xs.append(body.x0)
+        xs.append(body.x0 + jnp.asarray(bp["offset"], dtype) if "offset" in bp else body.x0)
         vs.append(jnp.broadcast_to(jnp.asarray(bp["velocity"], dtype), (n, model.dim)))
         masses.append(jnp.asarray(bp["density"], dtype) * body.vol0)
         vols.append(body.vol0)

@@ -32,6 +32,7 @@ __all__ = [
     "Parameter",
     "DENSITY",
     "VELOCITY",
+    "OFFSET",
     "GRAVITY",
     "FRICTION",
     "RESTITUTION",
@@ -166,6 +167,11 @@ class Parameter:
 DENSITY = Parameter("density", "kg/m^3", POSITIVE, Log10(), 0.1, None, "mass density")
 #: A body's initial velocity (m/s), a vector; GIC's velocity stage uses 1e-2..5e-2 m/s rates.
 VELOCITY = Parameter("velocity", "m/s", ANY, Linear(), 0.05, None, "initial velocity of the body")
+#: A rigid translation of a body's initial positions (m), a vector, 0 by default: where a body
+#: reconstructed from views sits a little off (a visual hull's carving is not symmetric), a
+#: velocity fitted to the first frames alone would otherwise absorb the offset (offset / frame
+#: interval: 1 mm at 24 fps is 0.024 m/s).
+OFFSET = Parameter("offset", "m", ANY, Linear(), 0.002, None, "rigid translation of the body's initial positions")
 #: The scene's gravity vector (m/s^2).
 GRAVITY = Parameter("gravity", "m/s^2", ANY, Linear(), 0.1, None, "gravitational acceleration")
 #: A collider's Coulomb friction coefficient (used with ``contact = "friction"``).
@@ -174,6 +180,6 @@ FRICTION = Parameter("friction", "", NON_NEGATIVE, Linear(), 0.02, None, "Coulom
 RESTITUTION = Parameter("restitution", "", UNIT_INTERVAL, Linear(), 0.02, None, "coefficient of restitution of a collider")
 
 #: Parameters every body has besides its material's.
-BODY_PARAMETERS = {p.name: p for p in (DENSITY, VELOCITY)}
+BODY_PARAMETERS = {p.name: p for p in (DENSITY, VELOCITY, OFFSET)}
 #: Parameters every collider has.
 COLLIDER_PARAMETERS = {p.name: p for p in (FRICTION, RESTITUTION)}

@@ -425,6 +425,7 @@ def _build_body(bspec, k, dim, dx, lo, hi, base_dir, dtype):
     bparams = {key: jnp.asarray(val, dtype) for key, val in material_values.items()}
     bparams["density"] = jnp.asarray(density, dtype)
     bparams["velocity"] = jnp.asarray(velocity, dtype)
+    bparams["offset"] = jnp.zeros(dim, dtype)  # a parameter, not a scene key (DESIGN §5.1): fitted, e.g. by identify
     return body, bparams
 
 

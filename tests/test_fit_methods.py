@@ -218,6 +218,33 @@ def test_contact_redetected_with_the_fitted_velocity():
     assert abs(np.log10(float(result.values["mu"]) / 50.0)) < 0.01
 
 
+def test_a_misplaced_body_needs_its_offset_fitted_with_the_velocity():
+    """A body whose reference lies a few mm from where the data put it (as a reconstruction
+    from views does): a velocity fitted to the first frames absorbs the offset (offset /
+    interval) and the material then compensates the wrong velocity; with ``offset`` among
+    the names it is fitted with the velocity in the pre-contact stage (:data:`KINEMATIC`) and
+    both come out exact, and so does μ."""
+    from jaxmpm.fit import KINEMATIC
+    from jaxmpm.identify.parameters import with_values
+
+    assert KINEMATIC == ("velocity", "offset")
+    spec = _spec(lo=(0.3, 0.4), hi=(0.5, 0.56), velocity=(0.5, -2.0), frames=7)
+    truth = load_scene(spec)
+    delta = [0.004, -0.003]  # m: 8 % and 6 % of a cell
+    x = jax.jit(lambda p: simulate(truth.model, p).x)(with_values(truth.model, truth.params, {"offset": delta}))
+    obs = Observation(times=np.arange(len(x)) * truth.model.frame_dt, positions=np.asarray(x))  # untracked
+    start = load_scene(_spec(mu=20.0, lo=(0.3, 0.4), hi=(0.5, 0.56), velocity=(0.0, 0.0), frames=7))
+    held = fit(start.model, start.params, obs, ["mu", "velocity"])
+    assert np.linalg.norm(held.values["velocity"] - np.array([0.5, -2.0])) > 0.05  # measured 0.072
+    assert abs(np.log10(float(held.values["mu"]) / 50.0)) > 0.02  # measured 0.043
+    result = fit(start.model, start.params, obs, ["mu", "velocity", "offset"])
+    assert result.stages[0]["names"] == ["velocity", "offset"] and "offset" not in result.stages[-1]["names"]
+    np.testing.assert_allclose(result.values["velocity"], [0.5, -2.0], atol=1e-3)
+    np.testing.assert_allclose(result.values["offset"], delta, atol=1e-5)
+    assert abs(np.log10(float(result.values["mu"]) / 50.0)) < 0.01
+    assert result.converged, result.message
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_a_rollouts_contact_is_the_first_interval_that_leaves_free_flight(dim):
     """Without per-particle tracks contact comes from a rollout, whose free flight is a
