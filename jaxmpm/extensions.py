@@ -356,9 +356,9 @@ def initial_velocity(model, params, state):
     dv = jnp.asarray(ext["initial_velocity"]["delta"]).astype(dtype)
     spin = jnp.asarray(ext["initial_velocity"]["spin"]).astype(dtype)
     parts = []
-    for body, sl in zip(model.bodies, model.body_slices()):
+    for sl in model.body_slices():
         x = state.x[sl]
-        centre = jnp.mean(body.x0, axis=0).astype(dtype)
+        centre = jnp.mean(x, axis=0)  # the body's centre where it starts (its offset included)
         parts.append(dv + cross_omega(spin, x - centre))
     return eqx.tree_at(lambda s: s.v, state, state.v + jnp.concatenate(parts))
 
