@@ -343,7 +343,7 @@ def plan_stages(
     """PAC-NeRF's schedule for ``names`` (see the module docstring) and notes about it;
     ``refine_velocity``: :attr:`FitConfig.refine_velocity`."""
     names = list(names)
-    vel = [n for n in names if leaf_name(n) in KINEMATIC]
+    kinematic = [n for n in names if leaf_name(n) in KINEMATIC]
     rest = [n for n in names if leaf_name(n) not in KINEMATIC]
     times = np.asarray(observation.times, float)
     t_end = float(times.max())
@@ -352,22 +352,22 @@ def plan_stages(
     t_c = velocity_until if velocity_until is not None else contact_time(model, params, observation)
     stages: list[Stage] = []
     pre = times[(times > 0) & (times <= (t_c if t_c is not None else t_end) + eps)]
-    if vel:
+    if kinematic:
         if not rest:
-            return [Stage(vel, None, "velocity (all frames)")], notes
+            return [Stage(kinematic, None, "velocity (all frames)")], notes
         if t_c is None:
             notes.append("no contact within the observed frames: the velocity is fitted with the other parameters")
         elif len(pre) < 1 or t_c <= 0:
             notes.append("the body is in contact from the start: the velocity is fitted with the other parameters")
         else:
-            stages.append(Stage(vel, float(t_c), f"velocity (pre-contact frames, t <= {t_c:.4g} s)"))
-    if vel and stages and refine_velocity is None:
+            stages.append(Stage(kinematic, float(t_c), f"velocity (pre-contact frames, t <= {t_c:.4g} s)"))
+    if kinematic and stages and refine_velocity is None:
         refine_velocity = not observation.tracks_particles and len(pre) == 1
         if refine_velocity:
             notes.append(f"the velocity rests on one observed interval before contact (t <= {t_c:.4g} s) and no "
                          "per-particle tracks: it is refitted with the material after its stage "
                          "(refine_velocity=False holds it)")
-    joint = rest + (vel if (refine_velocity or not stages) else [])
+    joint = rest + (kinematic if (refine_velocity or not stages) else [])
     if t_c is not None and warmup_frames > 0:
         window = float(t_c) + warmup_frames * model.frame_dt
         later = times[times > window + eps]
@@ -533,13 +533,13 @@ def fit(
                 raise JaxmpmError(f"stage {s.label or s.names}: {unknown} are not among the fitted names {names}")
     for note in notes:
         say(note)
-    vel_names = [n for n in names if leaf_name(n) in KINEMATIC]
-    velocity_names = [n for n in vel_names if leaf_name(n) == "velocity"]
+    kinematic_names = [n for n in names if leaf_name(n) in KINEMATIC]
+    velocity_names = [n for n in kinematic_names if leaf_name(n) == "velocity"]
     eps = 1e-3 * model.frame_dt  # observed times may be float32
     # contact found in a rollout of the initial guess (no per-particle tracks): the velocity
     # starts on the first observed interval and contact is re-detected after each velocity stage
     t_guess = None
-    if (c.stages == "auto" and c.velocity_until is None and vel_names and plan[0].names == vel_names
+    if (c.stages == "auto" and c.velocity_until is None and kinematic_names and plan[0].names == kinematic_names
             and not observation.tracks_particles):
         t_guess = plan[0].until
         plan[0] = _first_interval_stage(plan[0], observation.times, model.frame_dt)
@@ -588,7 +588,7 @@ def fit(
                 notes.append(f"stage {si + 1}: scanned {scanned['points']} starting points ({moved}); "
                              f"loss {scanned['start_loss']:.4g} -> {scanned['best_loss']:.4g}")
                 say(notes[-1])
-            if fall_velocity is not None and snames == vel_names:
+            if fall_velocity is not None and snames == kinematic_names:
                 v_name = velocity_names[0]
                 guess = {v_name: to_unconstrained(v_name, jnp.asarray(fall_velocity, y0[v_name].dtype))}
                 y0, picked = better_start(stage_residuals, y0, guess)
@@ -669,7 +669,7 @@ def fit(
                     + ": moves below that change the loss by jumps, not as its derivative predicts")
                 say(notes[-1])
             record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
-        if replans_left and stage.until is not None and set(snames) == set(vel_names):
+        if replans_left and stage.until is not None and set(snames) == set(kinematic_names):
             replans_left -= 1
             now = apply_unconstrained(model, params, list(y_all), y_all)
             t_plan = time.perf_counter()
@@ -679,7 +679,7 @@ def fit(
             rest, rest_notes = plan_stages(model, now, observation, names, velocity_until=t_c,
                                            warmup_frames=c.warmup_frames, refine_velocity=c.refine_velocity)
             same_window = abs(t_c - stage.until) <= eps
-            if same_window and rest and rest[0].names == vel_names:
+            if same_window and rest and rest[0].names == kinematic_names:
                 rest = rest[1:]  # the velocity was just fitted on exactly this window
             plan[si + 1:] = rest
             last_stage_of = _last_stage_of(plan)
