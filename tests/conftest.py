@@ -18,7 +18,15 @@ import os
 import shutil
 import tempfile
 
-import jax
+# XLA's CPU fusion emitters (its default) spend 1.5-3x longer compiling this project's programs
+# than its classic emitters, and a test here is mostly compilation: the suite compiles with the
+# classic ones (same arithmetic, other fusion and rounding order; the suite passes either way).
+# Set before JAX starts its CPU client; the commands the tests start inherit it.
+# XLA_FLAGS=--xla_cpu_use_fusion_emitters=true runs the suite on XLA's default instead.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+
+import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest
 
 from jaxmpm.cache import CACHE_ENV

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import copy
 
+import pytest
+
+# ``dim`` for a test of dimension-generic code whose 3D case runs the 2D case's code path at
+# several times its compile time: 2D in the default run, 3D with ``-m slow``.
+DIMS_3D_SLOW = pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)], ids=["2d", "3d"])
+
 
 def block_spec(
     dim: int = 2,

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from collider_scenes import ELASTIC, FLUID, SAND, Incline, depth_inside, rollout
-from scenes import final_position_loss
+from scenes import DIMS_3D_SLOW, final_position_loss
 
 from jaxmpm.colliders import Box, Plane
 from jaxmpm.cpic import GHOST_WEIGHT_MIN, CollisionField, ghost_mean_offset
@@ -485,7 +485,7 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
     assert steps.max() < 0.02, (steps.max(), np.median(steps))  # 1/800 of the sweep moves it < 2 cm/s
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@DIMS_3D_SLOW
 def test_the_reference_faces_switch_carries_no_steep_derivative(dim, tmp_path, monkeypatch):
     """Where a penetrated particle's reference face switches between two of the ring's facets,
     the choice is soft over cpic.REFERENCE_TEMPERATURE cells; inside that sliver the particle's
@@ -545,8 +545,11 @@ def test_the_reference_faces_switch_carries_no_steep_derivative(dim, tmp_path, m
 
 
 @pytest.mark.x64
-@pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("kind", ["ring", "plate"])
+@pytest.mark.parametrize(
+    "kind, dim",
+    [("ring", 2), pytest.param("ring", 3, marks=pytest.mark.slow), ("plate", 2), ("plate", 3)],  # 3D: the plate
+    ids=["ring-2", "ring-3", "plate-2", "plate-3"],
+)
 def test_derivatives_at_a_thin_collider_match_central_differences(dim, kind, tmp_path):
     """Forward- and reverse-mode derivatives of one step's velocity with respect to a particle's
     position, where the choice of the reference face and the opposed-node tests act (a tenth of
@@ -590,7 +593,7 @@ def test_derivatives_at_a_thin_collider_match_central_differences(dim, kind, tmp
 
 
 @pytest.mark.x64
-@pytest.mark.parametrize("dim", [2, 3])
+@DIMS_3D_SLOW
 def test_jacobian_of_a_fall_onto_a_thin_plate_matches_central_differences(dim, tmp_path):
     """The forward-mode derivative a fit's velocity stage takes — of every particle's final
     position with respect to the body's initial vertical speed — through a block landing on a

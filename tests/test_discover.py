@@ -140,6 +140,7 @@ def test_collider_friction_is_found_and_reported(tmp_path):
     assert st["direction"]["contact tangential"] > st["direction"]["contact normal"]
 
 
+@pytest.mark.slow  # heavy end to end; the screen and the refits are tested above
 def test_moving_collider_is_found():
     scene, obs = _hidden(SLIDE, "moving_collider", {"floor": [0.0, 0.3]})
     result = discover(scene.model, scene.params, obs, **FAST)
@@ -149,6 +150,7 @@ def test_moving_collider_is_found():
     assert abs(float(result.parameters["moving_collider.floor"][1]) - 0.3) < 0.03
 
 
+@pytest.mark.slow  # heavy end to end; the screen and the refits are tested above
 def test_gravity_error_is_found_from_silhouettes():
     from jaxmpm.identify.residuals import lifted_layers
     from jaxmpm.render import look_at, render_views

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from compiles import counting_compilations
-from scenes import block_spec
+from scenes import DIMS_3D_SLOW, block_spec
 
 from jaxmpm.model import initial_state
 from jaxmpm.scene import load_scene
@@ -65,6 +65,7 @@ def _plain_stencil_moments(st, incompatible, values):
 
 @pytest.mark.x64
 @pytest.mark.parametrize("masked", [False, True])
+@DIMS_3D_SLOW
 def test_stencil_moments_forward_and_reverse_rules_match_plain_autodiff_and_differences(dim, masked):
     """:func:`jaxmpm.state.stencil_moments` regroups its tangent by hand: its value, its
     Jacobian-vector products (batched over directions, as Jacobians are) and its transpose
@@ -149,6 +150,7 @@ def test_spread_transposes_into_adds(dim, count):
 
 @pytest.mark.x64
 @pytest.mark.parametrize("trailing", [(), (3,)])
+@DIMS_3D_SLOW
 def test_symmetric_pair_sum_matches_the_broadcast_sum(dim, trailing):
     """:func:`jaxmpm.fusion.symmetric_pair_sum` over the 3^D stencil nodes (a primitive whose
     transpose uses the pair weights' symmetry): value, forward mode batched over tangents,
@@ -191,6 +193,7 @@ def test_symmetric_pair_sum_matches_the_broadcast_sum(dim, trailing):
 
 @pytest.mark.x64
 @pytest.mark.parametrize("trailing", [(), (4,), (3, 3)])
+@DIMS_3D_SLOW
 def test_scale_rows_matches_the_broadcast_product(dim, trailing):
     """:func:`jaxmpm.fusion.scale_rows` (a primitive whose transpose sums a row's products
     with adds): its value, batched Jacobian-vector products, vector-Jacobian products, second
@@ -223,6 +226,7 @@ def test_scale_rows_matches_the_broadcast_product(dim, trailing):
 
 
 @pytest.mark.x64
+@DIMS_3D_SLOW
 def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
     """:func:`jaxmpm.constitutive.base.matmul` (a primitive: elementwise value and tangents,
     dot-based transpose): its value, Jacobian-vector products batched over directions,
@@ -257,6 +261,7 @@ def test_small_matmul_matches_jnp_matmul_in_value_and_derivatives(dim):
 
 
 @pytest.mark.x64
+@DIMS_3D_SLOW
 def test_gather_rows_rule_matches_plain_indexing(dim):
     """:func:`jaxmpm.state.gather_rows` gathers tangents in a conditional of its own (a fusion
     boundary): its value, batched Jacobian-vector products and transpose equal plain
@@ -317,6 +322,7 @@ def test_domain_walls_rule_matches_autodiff_of_the_walls(dim):
 
 @pytest.mark.x64
 @pytest.mark.parametrize("batching", ["shifted", "jax"])
+@DIMS_3D_SLOW
 def test_scatter_stencil_rules_match_plain_scatter(dim, batching, monkeypatch):
     """:func:`jaxmpm.state.scatter_stencil` (P2G's scatter, a primitive with its own rules):
     value, batched Jacobian-vector products, transpose, a batch of stencils and a batch of

@@ -357,10 +357,25 @@ def _singular_tangents(U: Array, sigma: Array, V: Array, dF: Array) -> tuple[Arr
     return dsigma, sym + skew, sym - skew
 
 
+def _factors_once(F: Array) -> tuple[Array, Array, Array]:
+    """``(U, sigma, V)`` of :func:`svd`, computed once and stored (a conditional).
+
+    The rules need the three factors of one decomposition. Where singular values repeat, the
+    decomposition is not unique (any rotation of the repeated pair's plane is one), so two
+    evaluations that round differently can return ``U`` of one decomposition and ``V`` of
+    another. XLA re-computes elementwise work inside each consumer's fusion, and its CPU
+    backend's classic emitters rounded those copies differently: at two equal singular values
+    the Hencky stress's gradient came out 10^2-10^4 times its size off
+    (``tests/test_svd.py::test_grad_isotropic_matches_fd``, which the suite runs on those
+    emitters). Stored once, the factors are consistent whatever the compiler does.
+    """
+    return compute_once(lambda F: _pack(*_svd_soa(F)), F, token=always_true(F))
+
+
 @_svd.defjvp
 def _svd_jvp(primals, tangents):
     (F,), (dF,) = primals, tangents
-    U, sigma, V = _pack(*_svd_soa(F))
+    U, sigma, V = _factors_once(F)
     dsigma, omega_u, omega_v = _singular_tangents(U, sigma, V, dF)
     return (U, sigma, V), (matmul(U, omega_u), dsigma, matmul(V, omega_v))
 
@@ -409,7 +424,7 @@ def _spectral_maps_jvp(fn, primals, tangents):
     # dB = U (Omega_U diag(b) - diag(b) Omega_U + diag(db)) U^T. dU and dV themselves are never
     # formed (6 small products per tangent, not 8).
     (F, args), (dF, dargs) = primals, tangents
-    U, sigma, V = _pack(*_svd_soa(F))
+    U, sigma, V = _factors_once(F)
     dsigma, omega_u, omega_v = _singular_tangents(U, sigma, V, dF)
     (a, b), (da, db) = jax.jvp(fn, (sigma, args), (dsigma, dargs))
     eye = jnp.eye(sigma.shape[-1], dtype=sigma.dtype)
