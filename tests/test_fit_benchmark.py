@@ -169,6 +169,7 @@ def test_a_float64_case_needs_x64_from_its_caller():
         run_case(case, preset, "float16")
 
 
+@pytest.mark.slow  # a diagnostic script of the benchmarks, not the package
 def test_the_loss_at_script_evaluates_the_fits_loss_at_chosen_points(tmp_path, capsys):
     """``benchmarks/sysid_loss_at.py``: from tracks of every particle the loss is 0 at the truth
     (to round-off) and grows with a parameter's or the velocity's offset; a line's ends are its two points."""

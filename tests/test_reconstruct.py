@@ -126,6 +126,7 @@ def _textured_sphere(views=4, res=64, radius=0.1, spacing=0.025):
     return hull_particles(hull, spacing), r["masks"][:, 0], r["images"][:, 0], K, P
 
 
+@pytest.mark.slow  # identify --refine (not the default); heavy: the default run checks the refinement's loss and IoU on the dataset below
 def test_refinement_trims_a_few_view_hull_towards_the_body():
     """Four views leave a sphere's hull ~13 % too large; the refinement removes particles,
     nearly all of them outside the true sphere, and the silhouettes still match."""
@@ -350,6 +351,7 @@ def test_reconstruction_uses_the_refined_body(dataset, tmp_path):
     assert ref is not None and ref.colors is not None  # the dataset has colour images
     np.testing.assert_array_equal(recon.points, ref.points)
     np.testing.assert_array_equal(recon.body_iou, ref.iou_after)
+    assert ref.loss[-1] < ref.loss[0] and ref.iou_after.min() >= ref.iou_before.min() - 0.01
     assert load_scene(write_scene(recon, tmp_path / "s")).model.num_particles == len(ref.points)
 
 
@@ -405,6 +407,7 @@ def test_collider_rgb_needs_the_plates(dataset):
         reconstruct(ds, "newtonian", collider_rgb=1.0)
 
 
+@pytest.mark.slow  # identify --collider-rgb (not the default); heavy
 def test_surfels_fitted_to_the_plates_take_their_colours():
     """With the plates, each surfel gets a colour: the fit brings the rendered collider's
     colours inside its masks closer to the plates' than the surfels it starts from (each

@@ -524,6 +524,7 @@ def _saved_residuals(fn, *args, capsys) -> list[tuple[tuple[int, ...], str]]:
 
 
 @pytest.mark.parametrize("collider", [None, "box"])
+@DIMS_3D_SLOW
 def test_checkpointed_rollout_saves_particle_state_per_step_never_grid_arrays(dim, collider, capsys):
     """Memory guard: under ``checkpoint="step"``/``"nested"`` reverse mode keeps, per substep,
     one particle state (x, v, C, F, aux, tags: O(N D^2)) and nothing grid sized (constants such
