@@ -18,9 +18,9 @@ import os
 import shutil
 import tempfile
 
-# XLA's CPU fusion emitters (its default) spend 1.5-3x longer compiling this project's programs
+# XLA's CPU fusion emitters (its default) spend 1.3-2x longer compiling this project's programs
 # than its classic emitters, and a test here is mostly compilation: the suite compiles with the
-# classic ones (same arithmetic, other fusion and rounding order; the suite passes either way).
+# classic ones (same arithmetic, other fusion and rounding order; docs/benchmarks.md, session 37).
 # Set before JAX starts its CPU client; the commands the tests start inherit it.
 # XLA_FLAGS=--xla_cpu_use_fusion_emitters=true runs the suite on XLA's default instead.
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
