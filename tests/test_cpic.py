@@ -1,6 +1,7 @@
 """Particle-wise (CPIC) colliders: no tunnelling, Coulomb friction on meshes, moving colliders,
 gradients through contact, identification of the collider friction, and the baselines."""
 
+import functools
 import math
 
 import equinox as eqx
@@ -532,7 +533,7 @@ def test_the_reference_faces_switch_carries_no_steep_derivative(dim, tmp_path, m
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if progress(mid) < 0.25 else (lo, mid)
     x_switch = position(jnp.asarray(0.5 * (lo + hi), state.x.dtype))
-    (_, normal), (dphi, dnormal) = jax.vmap(lambda e: jax.jvp(contact_at, (x_switch,), (e,)))(
+    (_, normal), (dphi, dnormal) = jax.jit(jax.vmap(lambda e: jax.jvp(contact_at, (x_switch,), (e,))))(
         jnp.eye(dim, dtype=state.x.dtype))
     # inside the sliver: the normal is a blend, away from both faces' (so the soft choice acts here)
     assert 0.1 < progress(0.5 * (lo + hi)) < 0.5
@@ -671,19 +672,23 @@ def test_surface_estimate_matches_the_pairwise_reference(dim):
         phi, nrm, near = fn(NodeSample(w, affine, sd, normal, off), dx)
         return phi, nrm, near.astype(jnp.float64)
 
-    mine = lambda *a: run(surface_estimate, *a)  # noqa: E731
-    plain = lambda *a: run(_surface_estimate_reference, *a)  # noqa: E731
     args = (weight, node_sd, offset)
-    for a, b in zip(mine(*args), plain(*args)):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
-    # the sample exercises the choice: leaving opposed faces in changes the estimate
-    free = surface_estimate(NodeSample(weight, affine, node_sd, normal, offset), dx, opposed=False)[0]
-    assert np.abs(np.asarray(free) - np.asarray(mine(*args)[0])).max() > 0.1 * dx
     tangents = (jnp.where(affine, jax.random.normal(keys[6], (k, n), jnp.float64), 0.0),
                 jax.random.normal(keys[7], (k, n), jnp.float64), jax.random.normal(keys[4], offset.shape, jnp.float64))
-    for a, b in zip(jax.jvp(mine, args, tangents)[1][:2], jax.jvp(plain, args, tangents)[1][:2]):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
     cot = (jax.random.normal(keys[0], (n,), jnp.float64), jax.random.normal(keys[1], (n, dim), jnp.float64),
            jnp.zeros((n,), jnp.float64))
-    for a, b in zip(jax.vjp(mine, *args)[1](cot), jax.vjp(plain, *args)[1](cot)):
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def derivatives(estimate, args, tangents, cot):
+        """Value, tangents and cotangents: one program each."""
+        fn = functools.partial(run, estimate)
+        return fn(*args), jax.jvp(fn, args, tangents)[1][:2], jax.vjp(fn, *args)[1](cot)
+
+    mine, plain = (derivatives(fn, args, tangents, cot) for fn in (surface_estimate, _surface_estimate_reference))
+    for a, b in zip(mine[0], plain[0]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+    # the sample exercises the choice: leaving opposed faces in changes the estimate
+    free = jax.jit(lambda a: surface_estimate(NodeSample(a[0], affine, a[1], normal, a[2]), dx, opposed=False)[0])(args)
+    assert np.abs(np.asarray(free) - np.asarray(mine[0][0])).max() > 0.1 * dx
+    for a, b in zip(jax.tree.leaves(mine[1:]), jax.tree.leaves(plain[1:]), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
