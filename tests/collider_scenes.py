@@ -27,26 +27,33 @@ def rollout(model, params, checkpoint=None):
     return np.asarray(traj.times), np.asarray(traj.x), np.asarray(traj.v)
 
 
-def depth_inside(collider, times, x, margin: float = 0.1, chunk: int = 8192) -> np.ndarray:
+def depth_inside(collider, times, x, margin: float = 0.1, chunk: int = 4096) -> np.ndarray:
     """Per frame and particle, how deep it is inside the collider (``-signed distance``; < 0 outside).
 
     Uses the collider's exact (brute-force) signed distance at each frame's time, for the
     particles within ``margin`` of a static collider's bounding box (``-margin`` elsewhere).
+    A static collider is asked once for all frames' particles. The points go in blocks of
+    ``chunk`` (the last one padded; fewer points: padded to a power of two), so that a
+    collider's distance compiles once or twice, not once per frame.
     """
     out = np.full(x.shape[:2], -margin)
     flat_t = np.broadcast_to(np.asarray(times)[:, None], x.shape[:2]).reshape(-1)
     flat_x = x.reshape(-1, x.shape[-1])
     pick = np.arange(len(flat_x))
-    if not getattr(collider, "moving", True):
+    static = not getattr(collider, "moving", True)
+    if static:
         lo, hi = collider.bounds()
         pick = pick[np.all((flat_x > lo - margin) & (flat_x < hi + margin), axis=1)]
     depth = np.empty(len(pick))
-    for t in np.unique(flat_t[pick]):
-        sel = np.flatnonzero(flat_t[pick] == t)
+    signed_distance = jax.jit(lambda points, t: collider.signed_distance(points, t)[0])
+    groups = [np.arange(len(pick))] if static else [np.flatnonzero(flat_t[pick] == t) for t in np.unique(flat_t[pick])]
+    for sel in groups:
+        t = jnp.asarray(flat_t[pick[sel[0]]] if len(sel) else 0.0, x.dtype)
         for s in range(0, len(sel), chunk):
             part = sel[s : s + chunk]
-            sd, _ = collider.signed_distance(jnp.asarray(flat_x[pick[part]]), jnp.asarray(t, x.dtype))
-            depth[part] = -np.asarray(sd)
+            size = chunk if len(sel) > chunk else 1 << max(len(part) - 1, 0).bit_length()
+            points = flat_x[pick[np.pad(part, (0, size - len(part)), mode="edge")]]
+            depth[part] = -np.asarray(signed_distance(jnp.asarray(points), t))[: len(part)]
     out.reshape(-1)[pick] = depth
     return out
 

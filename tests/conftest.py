@@ -52,6 +52,34 @@ def pytest_unconfigure(config):
         shutil.rmtree(folder, ignore_errors=True)
 
 
+#: Modules whose tests share work: a module-scoped fixture (a rendered dataset, a simulated
+#: observation) or compiled programs (the same scene rolled out, screened or fitted by several
+#: tests). Under xdist each runs whole on one worker, so that the fixture is built once and
+#: the programs compile once; spread over both workers, each worker built and compiled its
+#: own copy (docs/benchmarks.md, session 38).
+SHARED_WORK_MODULES = (
+    "test_cli.py", "test_discover.py", "test_fit_images.py", "test_fit_losses.py", "test_fit_methods.py",
+    "test_reconstruct.py",
+)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's ``load`` distribution, with each of :data:`SHARED_WORK_MODULES` one unit of work.
+
+    (xdist's own ``--dist loadgroup`` does not group on pytest 9.2: pytest-xdist issue 1386.)
+    Other ``--dist`` modes are left as xdist makes them."""
+    if config.getvalue("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class SharedWorkScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return module if module.rsplit("/", 1)[-1] in SHARED_WORK_MODULES else nodeid
+
+    return SharedWorkScheduling(config, log)
+
+
 @pytest.fixture(autouse=True)
 def _x64_when_marked(request):
     """Enable x64 around a test marked ``x64``; leave the float32 default otherwise."""
