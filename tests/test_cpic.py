@@ -2,7 +2,6 @@
 gradients through contact, identification of the collider friction, and the baselines."""
 
 import functools
-import math
 
 import equinox as eqx
 import jax
