@@ -11,6 +11,13 @@ import pytest
 DIMS_3D_SLOW = pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.mark.slow)], ids=["2d", "3d"])
 
 
+def slow(*values):
+    """One case of a parameter matrix that runs only with ``-m slow``: a case whose code path
+    another case of the same matrix takes in the default run (the same code in 3D, a material
+    with the same return map), at a cost the default run's budget does not have room for."""
+    return pytest.param(*values, marks=pytest.mark.slow)
+
+
 def block_spec(
     dim: int = 2,
     material: dict | None = None,

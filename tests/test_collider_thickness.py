@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from collider_scenes import DROP_MATERIALS, THICKNESSES, drop_run, drop_spec, drop_substeps
+from scenes import slow
 
 #: The references: thick boxes on and between node rows (stations 0 and 1 of every scene).
 THICK_BOXES = [("box", None, True), ("box", None, False)]
@@ -84,7 +85,7 @@ def _run(dim, material, stations, folder):
 
 
 @pytest.mark.parametrize(
-    "dim, material", [(2, "sand"), (2, "newtonian"), (2, "elastic"), (3, "newtonian")],
+    "dim, material", [(2, "sand"), slow(2, "newtonian"), slow(2, "elastic"), (3, "newtonian")],
     ids=["2d-sand", "2d-newtonian", "2d-elastic", "3d-newtonian"],
 )
 def test_thin_and_zero_thickness_colliders_hold_the_same_pile_as_thick_ones_and_planes(dim, material, tmp_path):

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scenes import MATERIAL_CASES, block_spec, final_position_loss
+from scenes import MATERIAL_CASES, block_spec, final_position_loss, slow
 
 from jaxmpm.constitutive import MATERIALS
 from jaxmpm.scene import load_scene
@@ -52,11 +52,15 @@ def _first_steps_loss(model_name: str, dtype):
     return scene.params, lambda params: jnp.sum(simulate(scene.model, params).x[-1] ** 2)
 
 
-@pytest.mark.parametrize("model", list(MATERIAL_CASES))
+@pytest.mark.parametrize("model", [m if m in ("viscoplastic", "plasticine", "sand") else slow(m) for m in MATERIAL_CASES])
 def test_first_step_gradient_in_float32_matches_float64_central_differences(model):
     """F = I at t = 0 (repeated singular values): the float32 gradient of every parameter
     (material, density, velocity, gravity) is finite and, along a random relative direction,
-    equals float64 central differences (measured agreement ~1e-5 relative)."""
+    equals float64 central differences (measured agreement ~1e-5 relative).
+
+    The default run takes the materials that differentiate an SVD at F = I (viscoplastic,
+    plasticine, sand); the fluid and the neo-Hookean solid take none (they run with ``-m slow``;
+    every material's rollout gradient is checked above in the default run)."""
     params32, loss32 = _first_steps_loss(model, jnp.float32)
     grads = jax.jit(jax.grad(loss32))(params32)
     leaves32 = [np.asarray(g) for g in jax.tree_util.tree_leaves(grads)]

@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scenes import block_spec
+from scenes import DIMS_3D_SLOW, block_spec
 
 from jaxmpm.scene import load_scene
 from jaxmpm.step import simulate
@@ -207,7 +207,7 @@ _UPDATE_CASES = {
 
 
 @pytest.mark.x64
-@pytest.mark.parametrize("dim", [2, 3])
+@DIMS_3D_SLOW
 @pytest.mark.parametrize("case", sorted(_UPDATE_CASES))
 def test_fused_update_equals_return_map_then_stress(case, dim):
     """``Material.update`` (one SVD for Hencky materials) gives the return map's F and the
