@@ -31,11 +31,16 @@ from pathlib import Path
 
 import numpy as np
 
-GRID_PADDING_CELLS = 3
 
+def _scene_model(n_particles: int, grid_n: int, material: str, dtype, v0=(0.0, 0.0, 0.0), center=None):
+    """The peers' cube (:func:`jaxmpm.bench_scene.initial_state` with ``v0`` and ``center``)
+    as a jaxmpm model with the peers' slip walls.
 
-def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
-    """The peers' cube as a jaxmpm model: the domain is the unit box less the 3-cell wall band."""
+    The peers take the outward velocity off the nodes of index ``i < bound`` or
+    ``i > grid_n - bound`` (positions ``<= (bound - 1) dx`` or ``>= 1 - (bound - 1) dx``);
+    jaxmpm's domain walls act on the nodes on or beyond the domain's faces, so the domain is
+    the unit box less ``bound - 1`` cells on each side (``tests/test_peers.py`` checks that
+    the two codes then land a cube alike)."""
     import jax.numpy as jnp
 
     from .bench_scene import MPMParams, initial_state
@@ -44,9 +49,10 @@ def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
     from .state import Grid
 
     p = MPMParams(grid_n=grid_n)
-    state = initial_state(n_particles, grid_n)
+    state = initial_state(n_particles, grid_n, v0=v0, center=center)
     dx = p.dx
-    grid = Grid(lo=(GRID_PADDING_CELLS * dx,) * 3, hi=(1.0 - GRID_PADDING_CELLS * dx,) * 3, dx=dx)
+    wall = (p.bound - 1) * dx
+    grid = Grid(lo=(wall,) * 3, hi=(1.0 - wall,) * 3, dx=dx)
     body = Body(
         name="cube",
         material=MATERIALS[material](),
@@ -60,7 +66,7 @@ def _scene_model(n_particles: int, grid_n: int, material: str, dtype):
     params = {
         "gravity": jnp.asarray(p.gravity, dtype),
         "bodies": ({**{k: jnp.asarray(v, dtype) for k, v in values.items()}, "density": jnp.asarray(p.rho, dtype),
-                    "velocity": jnp.zeros(3, dtype)},),
+                    "velocity": jnp.asarray(v0, dtype)},),
         "colliders": (),
     }
     return model, params

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip(
-    "taichi", reason="Taichi is not installed (pip install -e '.[bench]'): Taichi autodiff check skipped"
+    "taichi", reason="Taichi is not installed (pip install -e '.[test]'): Taichi autodiff check skipped"
 )
 
 ROOT = Path(__file__).resolve().parents[1]
