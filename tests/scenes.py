@@ -13,8 +13,9 @@ DIMS_3D_SLOW = pytest.mark.parametrize("dim", [2, pytest.param(3, marks=pytest.m
 
 def slow(*values):
     """One case of a parameter matrix that runs only with ``-m slow``: a case whose code path
-    another case of the same matrix takes in the default run (the same code in 3D, a material
-    with the same return map), at a cost the default run's budget does not have room for."""
+    another case of the same matrix, or another test, takes in the default run (the same code
+    in 3D, a material with no code of its own on the path tested), at a cost the default
+    run's budget does not have room for."""
     return pytest.param(*values, marks=pytest.mark.slow)
 
 

@@ -3,7 +3,7 @@
 and G2P, Taichi's own SVD): the same cube, dropped onto the same slip wall, lands alike.
 
 Skipped with a message when Taichi is not installed (the ``test`` extra installs it where
-Taichi has a wheel, Python < 3.13). Taichi compiles its step in ~5-10 s on 2 cores.
+Taichi has a wheel: Python < 3.13 on x86-64). Taichi compiles its step in ~5-10 s on 2 cores.
 """
 
 from __future__ import annotations
