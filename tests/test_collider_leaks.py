@@ -32,10 +32,12 @@ def _side_by_side(dx, collision="cpic"):
 
 
 #: Known defect, measured and not fixed (docs/colliders.md, "Transient penetration"): on the
-#: finer grid one sand particle reaches 0.316 dx inside the bunny for one frame (frame 3, the
-#: impact) and is pushed out by the next; the soft choice of the reference face (16c09d5,
-#: session 32) took it there from 0.126 dx. It ran only with ``-m slow``, which no one ran
-#: until session 39.
+#: finer grid one sand particle is 0.316 dx inside the bunny at one frame (frame 3, the impact)
+#: and out by the next. Between frames it reaches ~0.4 dx whatever the reference face's
+#: temperature: its surface estimate switches to the opposed face of a thin part for a
+#: substep and the penetration correction pushes it inwards. Since 16c09d5 (session 32) a
+#: frame catches it (0.126 dx before); this case runs only with ``-m slow``, which no one ran
+#: from session 32 to 38.
 TRANSIENT_PENETRATION = pytest.mark.xfail(strict=True, reason="known defect: one particle 0.32 dx inside the bunny "
                                           "for one frame at dx = 0.04 (docs/colliders.md)")
 
