@@ -484,6 +484,43 @@ def test_a_particle_at_a_thin_collider_moves_continuously_with_its_position(dim,
     assert steps.max() < 0.02, (steps.max(), np.median(steps))  # 1/800 of the sweep moves it < 2 cm/s
 
 
+def test_a_particle_in_one_wall_of_a_narrow_slot_is_measured_from_that_wall():
+    """A particle a fiftieth of a cell inside one wall of a slot 1.2 cells wide (2D, the slot's
+    walls off the node rows), swept two cells along the wall, is measured from the wall it is
+    in: phi ~ -0.02 cells, normal into the slot. Its cell reaches the facing wall, which it is
+    in front of; before session 40 that face outranked every face the particle lay behind, so
+    it was "outside" at 1.22 cells with the facing wall's normal (and the penetration
+    correction pushed such a particle into the solid: a sand particle went 0.4 cells into the
+    bunny, docs/colliders.md). The facing wall lies in front of the wall's plane: the two are
+    a concave pair (:func:`jaxmpm.cpic.concave_share`), so the wall competes by distance."""
+    import importlib
+
+    sim = importlib.import_module("jaxmpm.step")
+    dx = 0.05
+    outline = [[0.3, 0.2], [0.7, 0.2], [0.7, 0.6], [0.525, 0.6], [0.525, 0.4], [0.465, 0.4], [0.465, 0.6], [0.3, 0.6]]
+    spec = {"dim": 2, "dx": dx, "domain": {"lo": [0.0, 0.0], "hi": [1.0, 1.0]}, "gravity": [0.0, 0.0],
+            "frames": 2, "frame_dt": 1e-3, "substeps": 1, "collision": "cpic",
+            "bodies": [{"shape": "box", "name": "b", "lo": [0.05, 0.05], "hi": [0.1, 0.1],
+                        "material": {"model": "newtonian", "mu": 1.0, "kappa": 1e3}}],
+            "colliders": [{"type": "mesh", "name": "slot", "points": outline,
+                           "segments": [[i, (i + 1) % len(outline)] for i in range(len(outline))]}]}
+    scene = load_scene(spec)
+    assert scene.model.fields[0].thin  # the walls face each other within one stencil
+    model, params, state = sim._start(scene.model, scene.params, None)
+    state = eqx.tree_at(lambda s: s.tag, state, jnp.ones_like(state.tag))  # it came from outside
+    along = np.linspace(0.45, 0.55, 201)
+    positions = np.stack([np.full_like(along, 0.465 - 0.02 * dx), along], -1)
+
+    def contact_at(p):
+        s = eqx.tree_at(lambda s: s.x, state, state.x.at[0].set(p))
+        c = sim.gather_contact(model, compute_stencil(model.grid, s.x), s)
+        return c.phi[0][0], c.normal[0][0]
+
+    phi, normal = (np.asarray(a) for a in jax.jit(jax.vmap(contact_at))(jnp.asarray(positions, state.x.dtype)))
+    np.testing.assert_allclose(phi, -0.02 * dx, atol=0.01 * dx)
+    assert normal[:, 0].min() > 0.99, normal[:, 0].min()
+
+
 @DIMS_3D_SLOW
 def test_the_reference_faces_switch_carries_no_steep_derivative(dim, tmp_path, monkeypatch):
     """Where a penetrated particle's reference face switches between two of the ring's facets,
@@ -625,7 +662,7 @@ def test_jacobian_of_a_fall_onto_a_thin_plate_matches_central_differences(dim, t
 def _surface_estimate_reference(nodes, dx):
     """:func:`jaxmpm.cpic.surface_estimate` with the opposed-face choice written with whole
     ``(K, K, N)`` arrays of pairwise cosines (as it was before session 28; the choice's shares
-    without a derivative, as since session 32)."""
+    without a derivative, as since session 32; concave pairs, as since session 40)."""
     from jaxmpm import cpic
 
     carried = nodes.node_sd - jnp.sum(nodes.normal * nodes.offset, axis=-1)
@@ -634,6 +671,14 @@ def _surface_estimate_reference(nodes, dx):
     same = cpic.same_face_fraction(cos) * w[None]
     face = cpic._safe_ratio(jnp.sum(same * carried[None], axis=1), jnp.sum(same, axis=1))
     behind = jnp.maximum(cpic.BEHIND_SLOPE * face, face - cpic.BEHIND_DROP * dx)
+    # concave pairs: [j, i] = how far node i's surface point lies in front of node j's face
+    f = jax.lax.stop_gradient(face)
+    reach = jax.lax.stop_gradient(nodes.offset - nodes.node_sd[..., None] * nodes.normal)
+    ahead = f[:, None] + jnp.einsum("jnd,ind->jin", jax.lax.stop_gradient(nodes.normal), reach)
+    front = nodes.affine & (jax.lax.stop_gradient(w) > 0) & (f >= 0)
+    pair = jnp.clip(ahead / (cpic.CONCAVE_RAMP * dx), 0.0, 1.0) * (1.0 - cpic.same_face_fraction(jax.lax.stop_gradient(cos)))
+    concave = jnp.max(jnp.where(front[None], pair, 0.0), axis=1)
+    behind = behind + concave * (face - behind)
     key = jnp.where(face >= 0, -face, behind) / (cpic.REFERENCE_TEMPERATURE * dx)
     live = nodes.affine & (w > 0) & jnp.isfinite(key)
     top = jax.lax.stop_gradient(jnp.max(jnp.where(live, key, -jnp.inf), axis=0))
