@@ -814,7 +814,7 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
         behind = jnp.maximum(BEHIND_SLOPE * face, face - BEHIND_DROP * dx)
         # behind a face of a concave pair the particle is inside: that face competes by distance
         # (computed once, from values without tangents: it only ranks the faces)
-        concave = compute_once(functools.partial(concave_share, dx=dx), *jax.lax.stop_gradient((nodes, face, cos, same)),
+        concave = compute_once(functools.partial(concave_share, dx=dx), *jax.lax.stop_gradient((nodes, face, same)),
                                token=always_true(nodes.affine))
         behind = behind + concave * (face - behind)
         key = jnp.where(face >= 0, -face, behind) / (REFERENCE_TEMPERATURE * dx)
@@ -851,9 +851,10 @@ def surface_estimate(nodes: NodeSample, dx: float, opposed: bool = True):
 _STORED_PAIR_SUMS = 27
 
 
-def concave_share(nodes: NodeSample, face, cos: list[Array], same: list[Array], dx: float):
+def concave_share(nodes: NodeSample, face, same: list[Array], dx: float):
     """How much each node's face forms a *concave* pair with a face the particle is in front
-    of, ``(K, N)`` in [0, 1] (gradient-free: it only ranks the faces).
+    of, ``(K, N)`` in [0, 1] (it only ranks the faces: :func:`surface_estimate` passes values
+    without derivatives).
 
     Node ``i``'s surface point ``q_i = x_i - s_i N_i`` (exact: its nearest surface point) lies
     in front of node ``j``'s face by ``f_j + N_j·(q_i - x_p)`` (the face's plane carried to
@@ -866,7 +867,6 @@ def concave_share(nodes: NodeSample, face, cos: list[Array], same: list[Array], 
     :data:`CONCAVE_RAMP` cells of that distance (the maximum over the partner nodes, other
     faces only: :func:`same_face_fraction`).
     """
-    nodes, face, same = jax.lax.stop_gradient((nodes, face, same))
     reach = nodes.offset - nodes.node_sd[..., None] * nodes.normal  # q_i - x_p (K, N, D)
     front = nodes.affine & (nodes.weight > 0) & (face >= 0)
     share = jnp.zeros_like(face)
