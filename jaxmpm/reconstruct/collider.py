@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ObservationError
 from .hull import Hull
-from .refine import adam_fit
+from .refine import adam_fit, mean_over_views
 
 
 def hull_mesh(hull: Hull):
@@ -169,7 +169,7 @@ def fit_surfels(
     import jax.numpy as jnp
     import trimesh
 
-    from ..render import Camera, SurfelRenderer, mean_colors
+    from ..render import Camera, SurfelRenderer, mean_colors, stack_cameras
     from .hull import silhouette_iou
 
     masks = np.asarray(masks) > 0
@@ -180,42 +180,43 @@ def fit_surfels(
     scale0 = 0.5 * spacing
     cams = [Camera(np.asarray(intrinsics[v], np.float32), np.asarray(cam_to_world[v], np.float32), W, H) for v in range(V)]
     renderer = SurfelRenderer(scale=scale0)
-    target = jnp.asarray(masks, jnp.float32)
     if images is not None and np.shape(images) != (V, H, W, 3):
         raise ObservationError(f"fit_surfels: images have shape {np.shape(images)}; the masks need {(V, H, W, 3)}")
-    rgb = None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0)
-    x0 = jnp.asarray(pts, jnp.float32)
+    data = {
+        "x0": jnp.asarray(pts, jnp.float32),
+        "cameras": stack_cameras(cams),
+        "target": jnp.asarray(masks, jnp.float32),
+        "rgb": None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0),
+    }
 
-    def unpack(theta):
+    def unpack(theta, x0):
         x = x0 + scale0 * theta["dx"]
         n = theta["n"] / jnp.sqrt(jnp.sum(theta["n"] ** 2, axis=-1, keepdims=True) + 1e-12)
         return x, n, scale0 * jnp.exp(theta["log_s"]), jax.nn.sigmoid(theta["logit"])
 
-    def loss(theta):
-        x, n, s, o = unpack(theta)
-        total = 0.0
-        for v, cam in enumerate(cams):
+    def loss(theta, data):
+        x, n, s, o = unpack(theta, data["x0"])
+
+        def view_loss(cam, target, rgb):
             if rgb is None:
-                alpha = renderer.silhouette(x, cam, normals=n, scales=s, opacities=o)
-            else:
-                out = renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), normals=n, scales=s, opacities=o)
-                alpha = out.alpha
-                total = total + rgb_weight * jnp.mean(target[v][..., None] * (out.rgb - rgb[v]) ** 2)
-            total = total + jnp.mean((alpha - target[v]) ** 2)
-        return total / V
+                return jnp.mean((renderer.silhouette(x, cam, normals=n, scales=s, opacities=o) - target) ** 2)
+            out = renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), normals=n, scales=s, opacities=o)
+            return jnp.mean((out.alpha - target) ** 2) + rgb_weight * jnp.mean(target[..., None] * (out.rgb - rgb) ** 2)
+
+        return mean_over_views(view_loss, data["cameras"], data["target"], data["rgb"])
 
     theta = {
-        "dx": jnp.zeros_like(x0),
+        "dx": jnp.zeros((len(pts), 3), jnp.float32),
         "n": jnp.asarray(normals0, jnp.float32),
         "log_s": jnp.zeros((len(pts), 2), jnp.float32),
         "logit": jnp.full((len(pts),), 2.0, jnp.float32),
     }
-    if rgb is not None:
+    if images is not None:
         c0 = np.clip(mean_colors(pts, np.asarray(images, float) / 255.0, masks, intrinsics, cam_to_world), 0.02, 0.98)
         theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
-    theta, _ = adam_fit(loss, theta, steps, learning_rate, progress)
-    x, n, s, o = (np.asarray(a, float) for a in unpack(theta))
-    colors = None if rgb is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)
+    theta, _ = adam_fit(loss, theta, data, steps, learning_rate, progress)
+    x, n, s, o = (np.asarray(a, float) for a in unpack(theta, data["x0"]))
+    colors = None if images is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)
     if snap:
         # onto the hull: the silhouettes fix the surfels' footprints, not their depth or tilt
         # on a face seen face-on (left as fitted: top surfels of the tests' box 25 mm apart in

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ObservationError
 
-__all__ = ["BodyRefinement", "adam_fit", "refine_body"]
+__all__ = ["BodyRefinement", "adam_fit", "mean_over_views", "refine_body"]
 
 
 @dataclass
@@ -51,11 +51,15 @@ class BodyRefinement:
         return len(self.opacity) - len(self.points)
 
 
-def adam_fit(loss: Callable, theta, steps: int, learning_rate: float,
+def adam_fit(loss: Callable, theta, data, steps: int, learning_rate: float,
              progress: Callable[[int, float], None] | None = None) -> tuple[object, list[float]]:
-    """``steps`` Adam steps on the pytree ``theta`` minimising the scalar ``loss(theta)``
+    """``steps`` Adam steps on the pytree ``theta`` minimising the scalar ``loss(theta, data)``
     (one jitted step); returns the final ``theta`` and the loss before each step, and calls
-    ``progress(step, loss)`` after each."""
+    ``progress(step, loss)`` after each.
+
+    ``data`` is the pytree of arrays the loss compares with (masks, images, stacked cameras):
+    an argument of the compiled step, not constants built into it, so the program's size and
+    its compilation do not grow with the images."""
     import jax
     import optax
 
@@ -63,19 +67,31 @@ def adam_fit(loss: Callable, theta, steps: int, learning_rate: float,
     state = opt.init(theta)
 
     @jax.jit
-    def update(theta, state):
-        value, g = jax.value_and_grad(loss)(theta)
+    def update(theta, state, data):
+        value, g = jax.value_and_grad(loss)(theta, data)
         with jax.numpy_dtype_promotion("standard"):  # optax mixes its int32 step count with floats
             upd, state = opt.update(g, state)
         return optax.apply_updates(theta, upd), state, value
 
     history = []
     for i in range(steps):
-        theta, state, value = update(theta, state)
+        theta, state, value = update(theta, state, data)
         history.append(float(value))
         if progress is not None:
             progress(i, history[-1])
     return theta, history
+
+
+def mean_over_views(per_view: Callable, cameras, *views):
+    """The mean over the views of ``per_view(camera, *view_data)``: ``cameras`` stacked
+    (:func:`jaxmpm.render.stack_cameras`) and each of ``views`` an array (or pytree, or None)
+    with the views along its leading axis. One view at a time (``jax.lax.map``): the
+    renderer is traced and compiled once, whatever the number of views (a Python loop over
+    them compiled one copy per view, and its gradient another)."""
+    import jax
+    import jax.numpy as jnp
+
+    return jnp.mean(jax.lax.map(lambda args: per_view(*args), (cameras, *views)))
 
 
 def refine_body(
@@ -120,7 +136,7 @@ def refine_body(
     import jax
     import jax.numpy as jnp
 
-    from ..render import Camera, SurfelRenderer, mean_colors
+    from ..render import Camera, SurfelRenderer, mean_colors, stack_cameras
     from .hull import silhouette_iou
 
     points = np.asarray(points, float)
@@ -135,28 +151,29 @@ def refine_body(
     K, P = np.asarray(intrinsics, float), np.asarray(cam_to_world, float)
     cams = [Camera(np.asarray(K[v], np.float32), np.asarray(P[v], np.float32), W, H) for v in range(V)]
     renderer = SurfelRenderer.for_particles(points, spacing=spacing)
-    x = jnp.asarray(points, jnp.float32)
-    target = jnp.asarray(masks, jnp.float32)
-    rgb = None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0)
+    data = {
+        "x": jnp.asarray(points, jnp.float32),
+        "cameras": stack_cameras(cams),
+        "target": jnp.asarray(masks, jnp.float32),
+        "rgb": None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0),
+    }
 
-    def loss(theta):
+    def loss(theta, data):
         o = jax.nn.sigmoid(theta["logit"])
-        total = 0.0
-        for v, cam in enumerate(cams):
+
+        def view_loss(cam, target, rgb):
             if rgb is None:
-                alpha = renderer.silhouette(x, cam, opacities=o)
-                total = total + jnp.mean((alpha - target[v]) ** 2)
-            else:
-                out = renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), opacities=o)
-                total = total + jnp.mean((out.alpha - target[v]) ** 2)
-                total = total + rgb_weight * jnp.mean(target[v][..., None] * (out.rgb - rgb[v]) ** 2)
-        return total / V
+                return jnp.mean((renderer.silhouette(data["x"], cam, opacities=o) - target) ** 2)
+            out = renderer.render(data["x"], cam, jax.nn.sigmoid(theta["color"]), opacities=o)
+            return jnp.mean((out.alpha - target) ** 2) + rgb_weight * jnp.mean(target[..., None] * (out.rgb - rgb) ** 2)
+
+        return mean_over_views(view_loss, data["cameras"], data["target"], data["rgb"])
 
     theta = {"logit": jnp.full((len(points),), 3.0, jnp.float32)}
-    if rgb is not None:
+    if images is not None:
         c0 = np.clip(mean_colors(points, np.asarray(images, float) / 255.0, masks, K, P), 0.02, 0.98)
         theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
-    theta, history = adam_fit(loss, theta, steps, learning_rate, progress)
+    theta, history = adam_fit(loss, theta, data, steps, learning_rate, progress)
     opacity = np.asarray(jax.nn.sigmoid(theta["logit"]), float)
     keep = opacity >= threshold
     if not keep.any():
@@ -166,6 +183,6 @@ def refine_body(
         sil = [renderer.silhouette(jnp.asarray(pts, jnp.float32), c) for c in cams]
         return silhouette_iou(np.asarray(jnp.stack(sil)) > 0.5, masks)
 
-    colors = None if rgb is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)[keep]
+    colors = None if images is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)[keep]
     return BodyRefinement(points=points[keep], opacity=opacity, colors=colors, iou_before=iou(points),
                           iou_after=iou(points[keep]), loss=np.asarray(history))
