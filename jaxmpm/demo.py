@@ -82,7 +82,8 @@ def run_demo(out: Path, quick: bool = False) -> dict:
     start = load_scene(guess)
     _say(f"[2/3] identifying mu, kappa from the tracks, starting from PAC-NeRF's guess {INITIAL_GUESS}")
     result = fit(start.model, start.params, obs, ["mu", "kappa"],
-                 progress=lambda i, loss: _say(f"      iteration {i:3d}  loss {loss:.3e} m^2"))
+                 progress=lambda i, loss: _say(f"      iteration {i:3d}  loss {loss:.3e} m^2"),
+                 log=lambda message: _say(f"      {message}"))
     fitted = np.asarray(run_frames(start.model.with_substeps(result.substeps), result.params).x)
 
     _say("[3/3] writing results")
