@@ -150,6 +150,30 @@ def test_refinement_trims_a_few_view_hull_towards_the_body():
             assert ref.colors.shape == (len(ref.points), 3) and np.all((ref.colors >= 0) & (ref.colors <= 1))
 
 
+def test_the_refinement_loss_is_the_mean_of_each_views_loss():
+    """``refine_body`` maps its renderer over the stacked cameras (one compilation for all
+    views): its starting loss is the mean over the views of each view's mask error, rendered
+    one camera at a time here."""
+    import jax
+    import jax.numpy as jnp
+    from jaxmpm.reconstruct import refine_body
+    from jaxmpm.render import Camera, SurfelRenderer
+
+    spacing = 0.025
+    points, masks, _, K, P = _textured_sphere(views=3, res=24)
+    ref = refine_body(points, masks, K, P, spacing, steps=1)
+    renderer = SurfelRenderer.for_particles(points, spacing=spacing)
+    x = jnp.asarray(points, jnp.float32)
+    o = jnp.full((len(points),), jax.nn.sigmoid(3.0), jnp.float32)
+    H, W = masks.shape[1:]
+    per_view = [
+        float(jnp.mean((renderer.silhouette(x, Camera(np.float32(K[v]), np.float32(P[v]), W, H), opacities=o) - jnp.asarray(masks[v] > 0, jnp.float32)) ** 2))
+        for v in range(3)
+    ]
+    assert min(per_view) > 0.0 and np.ptp(per_view) > 0.0  # three different views, none fitted exactly
+    np.testing.assert_allclose(ref.loss[0], np.mean(per_view), rtol=1e-5)
+
+
 def test_refinement_refuses_mismatched_inputs():
     from jaxmpm.reconstruct import refine_body
 
