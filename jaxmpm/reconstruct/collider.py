@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import ObservationError
 from .hull import Hull
-from .refine import adam_fit, mean_over_views
+from .refine import adam_fit, color_logits, mean_view_error, view_targets
 
 
 def hull_mesh(hull: Hull):
@@ -169,7 +169,7 @@ def fit_surfels(
     import jax.numpy as jnp
     import trimesh
 
-    from ..render import Camera, SurfelRenderer, mean_colors, stack_cameras
+    from ..render import Camera, SurfelRenderer
     from .hull import silhouette_iou
 
     masks = np.asarray(masks) > 0
@@ -182,12 +182,7 @@ def fit_surfels(
     renderer = SurfelRenderer(scale=scale0)
     if images is not None and np.shape(images) != (V, H, W, 3):
         raise ObservationError(f"fit_surfels: images have shape {np.shape(images)}; the masks need {(V, H, W, 3)}")
-    data = {
-        "x0": jnp.asarray(pts, jnp.float32),
-        "cameras": stack_cameras(cams),
-        "target": jnp.asarray(masks, jnp.float32),
-        "rgb": None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0),
-    }
+    data = {"x0": jnp.asarray(pts, jnp.float32), **view_targets(cams, masks, images)}
 
     def unpack(theta, x0):
         x = x0 + scale0 * theta["dx"]
@@ -197,13 +192,12 @@ def fit_surfels(
     def loss(theta, data):
         x, n, s, o = unpack(theta, data["x0"])
 
-        def view_loss(cam, target, rgb):
-            if rgb is None:
-                return jnp.mean((renderer.silhouette(x, cam, normals=n, scales=s, opacities=o) - target) ** 2)
-            out = renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), normals=n, scales=s, opacities=o)
-            return jnp.mean((out.alpha - target) ** 2) + rgb_weight * jnp.mean(target[..., None] * (out.rgb - rgb) ** 2)
+        def render(cam, colour):
+            if not colour:
+                return renderer.silhouette(x, cam, normals=n, scales=s, opacities=o)
+            return renderer.render(x, cam, jax.nn.sigmoid(theta["color"]), normals=n, scales=s, opacities=o)
 
-        return mean_over_views(view_loss, data["cameras"], data["target"], data["rgb"])
+        return mean_view_error(render, data, rgb_weight)
 
     theta = {
         "dx": jnp.zeros((len(pts), 3), jnp.float32),
@@ -212,8 +206,7 @@ def fit_surfels(
         "logit": jnp.full((len(pts),), 2.0, jnp.float32),
     }
     if images is not None:
-        c0 = np.clip(mean_colors(pts, np.asarray(images, float) / 255.0, masks, intrinsics, cam_to_world), 0.02, 0.98)
-        theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
+        theta["color"] = color_logits(pts, images, masks, intrinsics, cam_to_world)
     theta, _ = adam_fit(loss, theta, data, steps, learning_rate, progress)
     x, n, s, o = (np.asarray(a, float) for a in unpack(theta, data["x0"]))
     colors = None if images is None else np.asarray(jax.nn.sigmoid(theta["color"]), float)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ObservationError
 
-__all__ = ["BodyRefinement", "adam_fit", "mean_over_views", "refine_body"]
+__all__ = ["BodyRefinement", "adam_fit", "color_logits", "mean_over_views", "mean_view_error", "refine_body", "view_targets"]
 
 
 @dataclass
@@ -94,6 +94,47 @@ def mean_over_views(per_view: Callable, cameras, *views):
     return jnp.mean(jax.lax.map(lambda args: per_view(*args), (cameras, *views)))
 
 
+def view_targets(cams, masks: np.ndarray, images: np.ndarray | None) -> dict:
+    """What a surfel fit compares with, as jit arguments: the stacked ``cams``, the masks
+    ``(V, H, W)`` as 0/1 floats and the images ``(V, H, W, 3)`` (uint8) in [0, 1], or None."""
+    import jax.numpy as jnp
+
+    from ..render import stack_cameras
+
+    return {
+        "cameras": stack_cameras(cams),
+        "target": jnp.asarray(masks, jnp.float32),
+        "rgb": None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0),
+    }
+
+
+def mean_view_error(render: Callable, views: dict, rgb_weight: float):
+    """The mean over the views of the squared mask error, plus ``rgb_weight`` times the
+    squared colour error inside the mask where ``views`` (:func:`view_targets`) has images.
+    ``render(camera, colour)`` gives the alpha ``(H, W)`` when ``colour`` is False, else the
+    renderer's output with ``alpha`` and ``rgb``."""
+    import jax.numpy as jnp
+
+    def view_error(cam, target, rgb):
+        if rgb is None:
+            return jnp.mean((render(cam, False) - target) ** 2)
+        out = render(cam, True)
+        return jnp.mean((out.alpha - target) ** 2) + rgb_weight * jnp.mean(target[..., None] * (out.rgb - rgb) ** 2)
+
+    return mean_over_views(view_error, views["cameras"], views["target"], views["rgb"])
+
+
+def color_logits(points: np.ndarray, images: np.ndarray, masks: np.ndarray, intrinsics, cam_to_world):
+    """The logits of the particles' mean observed colours (:func:`jaxmpm.render.mean_colors`,
+    clipped to [0.02, 0.98]): the starting point of a colour fit, ``(N, 3)`` float32."""
+    import jax.numpy as jnp
+
+    from ..render import mean_colors
+
+    c0 = np.clip(mean_colors(points, np.asarray(images, float) / 255.0, masks, intrinsics, cam_to_world), 0.02, 0.98)
+    return jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
+
+
 def refine_body(
     points: np.ndarray,
     masks: np.ndarray,
@@ -136,7 +177,7 @@ def refine_body(
     import jax
     import jax.numpy as jnp
 
-    from ..render import Camera, SurfelRenderer, mean_colors, stack_cameras
+    from ..render import Camera, SurfelRenderer
     from .hull import silhouette_iou
 
     points = np.asarray(points, float)
@@ -151,28 +192,21 @@ def refine_body(
     K, P = np.asarray(intrinsics, float), np.asarray(cam_to_world, float)
     cams = [Camera(np.asarray(K[v], np.float32), np.asarray(P[v], np.float32), W, H) for v in range(V)]
     renderer = SurfelRenderer.for_particles(points, spacing=spacing)
-    data = {
-        "x": jnp.asarray(points, jnp.float32),
-        "cameras": stack_cameras(cams),
-        "target": jnp.asarray(masks, jnp.float32),
-        "rgb": None if images is None else jnp.asarray(np.asarray(images, np.float32) / 255.0),
-    }
+    data = {"x": jnp.asarray(points, jnp.float32), **view_targets(cams, masks, images)}
 
     def loss(theta, data):
         o = jax.nn.sigmoid(theta["logit"])
 
-        def view_loss(cam, target, rgb):
-            if rgb is None:
-                return jnp.mean((renderer.silhouette(data["x"], cam, opacities=o) - target) ** 2)
-            out = renderer.render(data["x"], cam, jax.nn.sigmoid(theta["color"]), opacities=o)
-            return jnp.mean((out.alpha - target) ** 2) + rgb_weight * jnp.mean(target[..., None] * (out.rgb - rgb) ** 2)
+        def render(cam, colour):
+            if not colour:
+                return renderer.silhouette(data["x"], cam, opacities=o)
+            return renderer.render(data["x"], cam, jax.nn.sigmoid(theta["color"]), opacities=o)
 
-        return mean_over_views(view_loss, data["cameras"], data["target"], data["rgb"])
+        return mean_view_error(render, data, rgb_weight)
 
     theta = {"logit": jnp.full((len(points),), 3.0, jnp.float32)}
     if images is not None:
-        c0 = np.clip(mean_colors(points, np.asarray(images, float) / 255.0, masks, K, P), 0.02, 0.98)
-        theta["color"] = jnp.asarray(np.log(c0 / (1.0 - c0)), jnp.float32)
+        theta["color"] = color_logits(points, images, masks, K, P)
     theta, history = adam_fit(loss, theta, data, steps, learning_rate, progress)
     opacity = np.asarray(jax.nn.sigmoid(theta["logit"]), float)
     keep = opacity >= threshold
