@@ -32,6 +32,7 @@ from .datasets import load_pacnerf as load_pacnerf
 from .datasets import save_pacnerf as save_pacnerf
 from .discover import discover as discover
 from .errors import JaxmpmError as JaxmpmError
+from .errors import JaxmpmWarning as JaxmpmWarning
 from .errors import ObservationError as ObservationError
 from .errors import SceneError as SceneError
 from .errors import SimulationError as SimulationError
@@ -43,6 +44,7 @@ from .identify import build_objective as build_objective
 from .model import Body as Body
 from .model import Collision as Collision
 from .model import Model as Model
+from .model import contact_notes as contact_notes
 from .model import initial_state as initial_state
 from .parameters import Parameter as Parameter
 from .observe import Observation as Observation

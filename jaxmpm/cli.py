@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .errors import JaxmpmError
+from .errors import JaxmpmError, JaxmpmWarning
 
 EXIT_USER_ERROR = 2
 
@@ -407,13 +408,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """jaxmpm's own warnings as one plain line on stderr (others as Python shows them)."""
+    if issubclass(category, JaxmpmWarning):
+        print(f"warning: {message}", file=sys.stderr)
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def main(argv: list[str] | None = None) -> int:
     from .cache import enable_compilation_cache
 
     args = build_parser().parse_args(argv)
     enable_compilation_cache()  # compiled programs are reused by later runs (JAXMPM_CACHE_DIR=off: not)
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.func(args)
     except (JaxmpmError, OSError) as err:  # OSError: an unwritable --out, a full disk
         print(f"jaxmpm {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USER_ERROR

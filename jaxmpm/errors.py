@@ -15,3 +15,7 @@ class ObservationError(JaxmpmError, ValueError):
 
 class SimulationError(JaxmpmError, RuntimeError):
     """A simulation became unstable (CFL violated or NaN)."""
+
+
+class JaxmpmWarning(UserWarning):
+    """Something in the input will not do what it says (the CLI prints these as ``warning: ...``)."""

@@ -60,6 +60,7 @@ from .errors import JaxmpmError, ObservationError
 from .identify.parameters import (
     apply_unconstrained,
     check_names,
+    check_varied,
     default_names,
     get_param,
     leaf_name,
@@ -70,7 +71,7 @@ from .identify.parameters import (
 from .identify.residuals import Objective, Residuals, build_objective, frames_needed, observation_cameras
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
 from .identify.uncertainty import gauss_newton_covariance, physical_std, resolved_std
-from .model import Model, Params
+from .model import CPIC_RESTITUTION_NOTE, Model, Params, weak_restitution
 from .observe import Observation, check_observation_matches, check_scene_compatible
 from .parameters import Log10
 
@@ -505,6 +506,7 @@ def fit(
     if not names:
         raise JaxmpmError("no parameters to fit")
     paths = {n: resolve_name(model, params, n) for n in names}
+    check_varied(model, paths, "fitted")
     initial = {n: np.asarray(get_param(params, p)) for n, p in paths.items()}
     for n, v in initial.items():
         if transform_of(n).needs_positive() and np.any(v <= 0):
@@ -515,7 +517,8 @@ def fit(
     # fail early on unusable data (before any rollout)
     build_objective(model, observation, **objective_options)
 
-    notes: list[str] = []
+    notes: list[str] = [f"{n}: {CPIC_RESTITUTION_NOTE}" for n, p in paths.items()
+                        if p[0] == "colliders" and p[2] == "restitution" and weak_restitution(model, p[1])]
     planning_s = 0.0
     if c.stages == "auto":
         t_plan = time.perf_counter()

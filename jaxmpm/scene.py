@@ -9,6 +9,7 @@ import copy
 import json
 import math
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,8 +19,8 @@ import numpy as np
 from . import memory
 from .colliders import COLLIDER_TYPES, CONTACTS, load_mesh, place, resolve_path, vector
 from .constitutive import MATERIALS
-from .errors import SceneError
-from .model import COLLISION_MODES, Body, Collision, Model, Params
+from .errors import JaxmpmWarning, SceneError
+from .model import COLLISION_MODES, Body, Collision, Model, Params, contact_notes
 from .parameters import DENSITY, FRICTION, RESTITUTION, Parameter
 from .state import Grid
 
@@ -305,6 +306,9 @@ def load_scene(source: str | Path | dict, base_dir: str | Path | None = None, dt
         base_dir: folder for relative paths (default: the file's folder, or the cwd).
         dtype: float dtype of the model and params (``jnp.float32`` or ``jnp.float64``;
             float64 requires ``jax.config.update("jax_enable_x64", True)``).
+
+    Warns (:class:`jaxmpm.JaxmpmWarning`) for each collider friction or restitution that is set
+    but does nothing, or less than its name says (:func:`jaxmpm.model.contact_notes`).
     """
     if isinstance(source, dict):
         spec = copy.deepcopy(source)
@@ -312,7 +316,10 @@ def load_scene(source: str | Path | dict, base_dir: str | Path | None = None, dt
     else:
         spec = read_spec(source)
         base = Path(base_dir) if base_dir is not None else Path(source).resolve().parent
-    return _build(spec, base, dtype)
+    scene = _build(spec, base, dtype)
+    for note in contact_notes(scene.model, scene.params):
+        warnings.warn(note, JaxmpmWarning, stacklevel=2)
+    return scene
 
 
 def _build(spec: dict, base_dir: Path, dtype) -> Scene:

@@ -23,7 +23,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .errors import JaxmpmError
-from .identify.parameters import get_param, resolve_name, set_param
+from .identify.parameters import check_varied, get_param, resolve_name, set_param
 from .model import Model, Params
 from .step import Trajectory, simulate
 
@@ -45,6 +45,7 @@ def sweep_params(
     """
     if not overrides:
         raise JaxmpmError("sweep needs at least one parameter to vary in 'overrides'")
+    check_varied(model, {name: resolve_name(model, params, name) for name in overrides}, "swept")
     values = {}
     for name, vals in overrides.items():
         path = resolve_name(model, params, name)

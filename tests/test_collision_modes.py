@@ -3,7 +3,9 @@ small 2D scenes: the grid-level mode lets material fall through a thin plate tha
 node rows, boundary particles hold it about 1 dx off without a leak, and the contact law sends
 ``-e v_n`` back along the normal."""
 
+import json
 import math
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,11 @@ import numpy as np
 import pytest
 from collider_scenes import ELASTIC, FLUID, SAND, rollout
 
+from jaxmpm import FitConfig, JaxmpmError, JaxmpmWarning, Observation, fit, simulate
+from jaxmpm.cli import main
 from jaxmpm.colliders import project_velocity
+from jaxmpm.model import CPIC_RESTITUTION_NOTE
+from jaxmpm.sweep import sweep_params
 from jaxmpm.scene import load_scene
 from jaxmpm import initial_state, step
 
@@ -142,6 +148,78 @@ def test_sticky_contact_has_no_rebound_whatever_its_restitution(tmp_path):
     assert vy[turn - 1] < -1.5  # it arrived fast ...
     assert vy[turn:].max() < 1e-3 and abs(vy[-1]) < 1e-3  # ... and never left
     assert y.min() > 0.1 - 0.05 * DX
+
+
+def _one_collider_scene(collision: str, kind: str, contact: str, friction: float, restitution: float) -> dict:
+    """A 2D block above one collider of ``kind`` (``"box"`` or ``"plane"``) with the given contact."""
+    shape = ({"lo": [0.0, 0.0], "hi": [1.0, 0.1]} if kind == "box" else {"point": [0.0, 0.1], "normal": [0.0, 1.0]})
+    return {
+        "dim": 2, "dx": 0.05, "domain": {"lo": [0, 0], "hi": [1, 1]}, "frames": 2, "frame_dt": 0.01, "substeps": 4,
+        "collision": collision,
+        "bodies": [{"shape": "box", "lo": [0.4, 0.3], "hi": [0.6, 0.4], "material": ELASTIC}],
+        "colliders": [{"type": kind, "name": "floor", "contact": contact, "friction": friction,
+                       "restitution": restitution, **shape}],
+    }
+
+
+@pytest.mark.parametrize("collision, kind, contact, friction, restitution, words", [
+    ("cpic", "box", "slip", 0.0, 0.5, "restitution = 0.5: in CPIC contact a restitution barely changes a rebound"),
+    ("cpic", "box", "sticky", 0.0, 0.5, "restitution = 0.5 has no effect: its contact is 'sticky'"),
+    ("cpic", "box", "slip", 0.3, 0.0, "friction = 0.3 has no effect: its contact is 'slip'"),
+    ("particles", "box", "friction", 0.3, 0.0, "friction = 0.3 has no effect: boundary particles"),
+    ("cpic", "box", "friction", 0.3, 0.0, None),
+    ("cpic", "plane", "slip", 0.0, 0.5, None),  # planes act on the grid in every mode
+    ("grid", "box", "slip", 0.0, 0.5, None),
+    ("particles", "plane", "friction", 0.3, 0.5, None),
+])
+def test_load_scene_warns_of_contact_parameters_that_do_nothing_or_little(
+        collision, kind, contact, friction, restitution, words):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        load_scene(_one_collider_scene(collision, kind, contact, friction, restitution))
+    said = [str(w.message) for w in caught if issubclass(w.category, JaxmpmWarning)]
+    if words is None:
+        assert said == []
+    else:
+        assert len(said) == 1 and said[0].startswith("collider 'floor': ") and words in said[0], said
+
+
+def test_a_fit_of_a_cpic_restitution_says_in_its_notes_that_it_barely_acts():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", JaxmpmWarning)
+        scene = load_scene(_one_collider_scene("cpic", "box", "slip", 0.0, 0.2))
+    traj = simulate(scene.model, scene.params)
+    obs = Observation(times=np.asarray(traj.times), positions=np.asarray(traj.x), point_ids="particles")
+    result = fit(scene.model, scene.params, obs, ["floor.restitution"], FitConfig(max_steps=1, stages=None))
+    assert [n for n in result.notes if "barely changes a rebound" in n] == [
+        f"floor.restitution: {CPIC_RESTITUTION_NOTE}"]
+
+
+def test_the_command_prints_a_contact_warning_as_one_line_before_its_work(tmp_path, capsys):
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(_one_collider_scene("cpic", "box", "sticky", 0.0, 0.5)))
+    # the observation file does not exist: the warning comes with the scene, before it is read
+    code = main(["fit", str(path), str(tmp_path / "none.npz"), "--out", str(tmp_path / "fit.json")])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and "Traceback" not in "\n".join(lines)
+    assert lines[0] == ("warning: collider 'floor': restitution = 0.5 has no effect: its contact is 'sticky', "
+                        "which stops all sliding and bouncing")
+    assert lines[-1].startswith("jaxmpm fit: error: ") and "none.npz" in lines[-1], lines
+
+
+@pytest.mark.parametrize("contact, name", [("slip", "floor.friction"), ("sticky", "floor.restitution")])
+def test_fitting_or_sweeping_a_contact_parameter_that_does_nothing_is_refused(contact, name):
+    """Its derivative is exactly zero: refused with the reason, before any rollout."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", JaxmpmWarning)
+        scene = load_scene(_one_collider_scene("cpic", "box", contact, 0.0, 0.0))
+    obs = Observation(times=np.asarray(scene.model.frame_times()), positions=np.zeros((2, scene.model.num_particles, 2)),
+                      point_ids="particles")
+    with pytest.raises(JaxmpmError, match=f"parameter '{name}' cannot be fitted: it has no effect, as collider "
+                                          f"'floor' stands: its contact is '{contact}'"):
+        fit(scene.model, scene.params, obs, [name])
+    with pytest.raises(JaxmpmError, match=f"parameter '{name}' cannot be swept"):
+        sweep_params(scene.model, scene.params, {name: [0.1, 0.2]})
 
 
 def test_fluid_on_a_3d_shell_of_gaussian_disks_stays_outside(tmp_path):

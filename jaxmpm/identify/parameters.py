@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from ..constitutive import MATERIALS
 from ..errors import JaxmpmError
-from ..model import Model, Params
+from ..model import Model, Params, inert_contact_parameter
 from ..parameters import BODY_PARAMETERS, COLLIDER_PARAMETERS, GRAVITY, Linear, Log10, Parameter, Transform
 
 __all__ = [
@@ -31,6 +31,7 @@ __all__ = [
     "default_names",
     "material_name",
     "check_names",
+    "check_varied",
     "LOG10_PARAMS",
     "ADAM_LEARNING_RATES",
 ]
@@ -132,6 +133,22 @@ def check_names(names: Sequence[str], where: str = "parameter names") -> list[st
     if repeated:
         raise JaxmpmError(f"{where}: {', '.join(repeated)} given more than once")
     return names
+
+
+def check_varied(model: Model, paths: dict[str, tuple], verb: str) -> None:
+    """Raise before any rollout when a parameter to be ``verb`` (fitted, swept) is a collider's
+    friction or restitution that has no effect in ``model``
+    (:func:`jaxmpm.model.inert_contact_parameter`): its derivative would be exactly zero.
+
+    Arguments:
+        paths: ``{name: path}`` as :func:`resolve_name` gives them.
+    """
+    for name, path in paths.items():
+        if path[0] == "colliders":
+            why = inert_contact_parameter(model, path[1], path[2])
+            if why is not None:
+                raise JaxmpmError(f"parameter {name!r} cannot be {verb}: it has no effect, as collider "
+                                  f"{model.colliders[path[1]].name!r} stands: {why}")
 
 
 def get_param(params: Params, path: tuple):
