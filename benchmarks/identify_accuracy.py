@@ -5,8 +5,9 @@ of a box or the bunny; dx = 0.05 m, ~250 particles) is simulated, rendered from 
 with jaxmpm's surfel renderer, optionally degraded (noisy masks, a shifted or missing view,
 blur, a darker plate), written as a PAC-NeRF folder and identified from it: the body and the
 collider reconstructed from the views (the collider as fitted surfels, as AS-DiffMPM, or the
-hull's mesh) or the true collider imported in place of the reconstruction, as AS-DiffMPM
-compares them. Prints one JSON row per collider: the parameters' errors against the truth
+hull's mesh), the true collider imported in place of the reconstruction, as AS-DiffMPM
+compares them, or 600 surfels placed on the true surface without a fit (``placed-disks``: the
+disk field alone). Prints one JSON row per collider: the parameters' errors against the truth
 (|Δlog10| for μ, κ, E, τ_Y, η; degrees for the friction angle; raw for ν), the velocity
 error, the collider's Chamfer distance to the truth, the first-frame and final IoU, wall and
 CPU seconds.
@@ -67,7 +68,9 @@ def main() -> None:
     ap.add_argument("--degrade", default="clean", choices=DEGRADATIONS)
     ap.add_argument("--tolerance", type=int, default=0, help="k of the body's visual hull")
     ap.add_argument("--max-steps", type=int, default=30)
-    ap.add_argument("--colliders", default="disks,mesh,true", help="reconstructed (disks, mesh) and/or the true one")
+    ap.add_argument("--colliders", default="disks,mesh,true",
+                    help="reconstructed (disks, mesh), surfels placed on the true surface (placed-disks: the disk "
+                         "field alone) and/or the true collider (true)")
     ap.add_argument("--renderer", default="surfels", help="the fit's renderer (the data are rendered with surfels)")
     ap.add_argument("--num-pixels", type=int, default=256)
     ap.add_argument("--refine", type=int, default=0, help="Adam steps of the first-frame refinement (0: none)")
@@ -92,6 +95,19 @@ def main() -> None:
     names = FIT_NAMES[args.material]
     true_surface = collider_mesh(COLLIDERS[args.collider]).sample(20000, seed=0)
     rows = []
+
+    def placed_disks(folder: Path, count: int = 600) -> Path:
+        """``count`` surfels evenly placed on the true collider, with its normals and scales of
+        half their spacing (the surfel fit's starting layout, without the fit)."""
+        import trimesh
+
+        surface = collider_mesh(COLLIDERS[args.collider])
+        centers, face = trimesh.sample.sample_surface_even(surface, count, seed=0)
+        path = folder / "placed_disks.npz"
+        np.savez(path, centers=centers, normals=surface.face_normals[face],
+                 scales=np.full(len(centers), np.sqrt(surface.area / len(centers)) / 2))
+        return path
+
     with tempfile.TemporaryDirectory() as tmp:
         folder, _ = render_drop_dataset(Path(tmp) / "ds", views=args.views, res=args.res, min_elevation_deg=args.min_elevation,
                                  material=args.material, collider=args.collider, degradation=args.degrade)
@@ -103,10 +119,14 @@ def main() -> None:
                               refine=args.refine, collider_rgb=args.collider_rgb)
             chamfer = {"mesh": chamfer_distance(rec.collider_mesh.sample(20000, seed=0), true_surface),
                        "disks": None if rec.surfels is None else chamfer_distance(rec.surfels.centers, true_surface)}
-            if kind == "true":  # the true collider imported in place of the reconstruction
+            if kind in ("true", "placed-disks"):
                 rec = copy.copy(rec)
                 rec.spec = copy.deepcopy(rec.spec)
+            if kind == "true":  # the true collider imported in place of the reconstruction
                 rec.spec["colliders"][-1] = {**COLLIDERS[args.collider], "name": "collider", "contact": "sticky"}
+            if kind == "placed-disks":  # surfels placed on the true surface (no fit): the disk field alone
+                rec.spec["colliders"][-1] = {"type": "disks", "path": str(placed_disks(Path(tmp))), "name": "collider",
+                                             "contact": "sticky"}
             scene = load_scene(write_scene(rec, Path(tmp) / f"scene_{kind}"))
             result = identify_material(scene, obs, names + ["velocity"] + (["offset"] if args.offset else []),
                                        max_steps=args.max_steps,

@@ -249,13 +249,17 @@ def rig(preset: Preset):
 
 
 def errors(names, estimate: dict, truth: dict) -> dict:
-    """|Δlog10| for log10 parameters, |Δ| (degrees for the friction angle, raw for ν)."""
+    """|Δlog10| for log10 parameters, |Δ| (degrees for the friction angle, raw for ν); ``inf``
+    for an estimate outside the log's domain (a fit whose ``10^y`` underflowed to 0)."""
     from .identify.parameters import LOG10_PARAMS
 
     out = {}
     for n in names:
         e, t = float(np.ravel(estimate[n])[0]), float(truth[n])
-        out[n] = abs(math.log10(e) - math.log10(t)) if n in LOG10_PARAMS else abs(e - t)
+        if n in LOG10_PARAMS:
+            out[n] = abs(math.log10(e) - math.log10(t)) if e > 0 else math.inf
+        else:
+            out[n] = abs(e - t)
     return out
 
 

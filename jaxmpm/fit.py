@@ -61,6 +61,7 @@ from .identify.parameters import (
     apply_unconstrained,
     check_names,
     check_varied,
+    declaration,
     default_names,
     get_param,
     leaf_name,
@@ -720,14 +721,19 @@ def fit(
     final_params = apply_unconstrained(model, params, names, y_all)
     values = {n: np.asarray(get_param(final_params, p)) for n, p in paths.items()}
     deciding = [records[i] for i in sorted(set(last_stage_of.values()))]
-    converged = all(r["converged"] for r in deciding)
+    outside = outside_their_range(values)
+    notes += outside
+    for note in outside:
+        say(note)
+    converged = all(r["converged"] for r in deciding) and not outside
     if converged:
         message = f"converged ({total_iterations} iterations in {len(records)} stage{'s' if len(records) > 1 else ''})"
         if len(records) == 1:
             message = records[0]["message"]
     else:
-        failed = "; ".join(f"stage {records.index(r) + 1} ({r['label']}): {r['message']}" for r in deciding if not r["converged"])
-        message = f"did not converge — {failed}; returning the best parameters so far"
+        failed = [f"stage {records.index(r) + 1} ({r['label']}): {r['message']}" for r in deciding if not r["converged"]]
+        failed += [note.split(":")[0] for note in outside]
+        message = f"did not converge — {'; '.join(failed)}; returning the best parameters so far"
     stage_timing = [r["timing"] for r in records]
     timing = {
         "total_s": time.perf_counter() - start,
@@ -755,6 +761,23 @@ def fit(
     if not converged and any(r.get("scan", {}).get("moved") for r in records):
         result = _also_from_the_guess(result, scene_model, params, observation, names, c, progress=progress, log=log)
     return result
+
+
+def outside_their_range(values: dict) -> list[str]:
+    """One note per fitted value outside its parameter's valid range (or not finite), e.g. a
+    log10 parameter whose optimisation variable ran off until ``10^y`` underflowed to 0: the
+    data did not hold it, and a scene with it would not load."""
+    notes = []
+    for name, value in values.items():
+        d = declaration(name)
+        v = np.ravel(np.asarray(value, float))
+        if not np.all(np.isfinite(v)) or (d is not None and not all(float(x) in d.range for x in v)):
+            shown = f"{float(v[0]):g}" if v.size == 1 else np.array2string(v, precision=4)
+            valid = "finite" if d is None else d.range.text
+            notes.append(f"{name} ended outside its valid range ({valid}): {shown}{' ' + d.unit if d and d.unit else ''}; "
+                         "the data did not hold it (its optimisation variable ran off): do not use this value, fix "
+                         "the parameter or fit it from data that constrain it")
+    return notes
 
 
 def _also_from_the_guess(scanned: FitResult, model: Model, params: Params, observation: Observation,

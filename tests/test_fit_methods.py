@@ -8,7 +8,7 @@ import pytest
 from scenes import block_spec
 
 from jaxmpm.cli import main
-from jaxmpm.fit import CONTACT_ROLLOUT_TOL, FitConfig, FitError, contact_time, fit, plan_stages
+from jaxmpm.fit import CONTACT_ROLLOUT_TOL, FitConfig, FitError, contact_time, fit, outside_their_range, plan_stages
 from jaxmpm.identify import ADAM_LEARNING_RATES
 from jaxmpm.observe import Observation, save_observation
 from jaxmpm.scene import load_scene
@@ -137,6 +137,20 @@ def test_a_fit_that_does_not_converge_says_so(obs, tmp_path, capsys):
     assert payload["loss"][-1] <= payload["loss"][0] and payload["iterations"] == 1
     captured = capsys.readouterr()
     assert "did not converge" in captured.err and "NOT CONVERGED" in captured.out
+
+
+def test_a_fitted_value_outside_its_range_is_named_and_not_called_converged():
+    """A log10 parameter the data do not hold can run off until 10^y underflows to 0 (seen:
+    kappa = 0 Pa from silhouettes, session 43): the fit must not report it as a result."""
+    assert outside_their_range({"mu": np.asarray(200.0), "velocity": np.asarray([0.0, -1.0, 0.0]),
+                                "floor.friction": np.asarray(0.0)}) == []
+    notes = outside_their_range({"kappa": np.asarray(0.0, np.float32), "nu": np.asarray(np.nan),
+                                 "velocity": np.asarray([0.0, np.inf]), "body.E": np.asarray(-1.0)})
+    assert [n.split(":")[0] for n in notes] == ["kappa ended outside its valid range (> 0)",
+                                                "nu ended outside its valid range (in (-1, 0.5))",
+                                                "velocity ended outside its valid range (finite)",
+                                                "body.E ended outside its valid range (> 0)"]
+    assert notes[0].split(":")[1].startswith(" 0 Pa;")
 
 
 def test_every_fit_reports_where_its_time_went(obs, tmp_path, capsys):
