@@ -215,8 +215,8 @@ def test_fitting_or_sweeping_a_contact_parameter_that_does_nothing_is_refused(co
         scene = load_scene(_one_collider_scene("cpic", "box", contact, 0.0, 0.0))
     obs = Observation(times=np.asarray(scene.model.frame_times()), positions=np.zeros((2, scene.model.num_particles, 2)),
                       point_ids="particles")
-    with pytest.raises(JaxmpmError, match=f"parameter '{name}' cannot be fitted: it has no effect, as collider "
-                                          f"'floor' stands: its contact is '{contact}'"):
+    with pytest.raises(JaxmpmError, match=f"parameter '{name}' cannot be fitted: it has no effect on collider "
+                                          f"'floor': its contact is '{contact}'"):
         fit(scene.model, scene.params, obs, [name])
     with pytest.raises(JaxmpmError, match=f"parameter '{name}' cannot be swept"):
         sweep_params(scene.model, scene.params, {name: [0.1, 0.2]})

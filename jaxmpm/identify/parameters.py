@@ -147,8 +147,8 @@ def check_varied(model: Model, paths: dict[str, tuple], verb: str) -> None:
         if path[0] == "colliders":
             why = inert_contact_parameter(model, path[1], path[2])
             if why is not None:
-                raise JaxmpmError(f"parameter {name!r} cannot be {verb}: it has no effect, as collider "
-                                  f"{model.colliders[path[1]].name!r} stands: {why}")
+                raise JaxmpmError(f"parameter {name!r} cannot be {verb}: it has no effect on collider "
+                                  f"{model.colliders[path[1]].name!r}: {why}")
 
 
 def get_param(params: Params, path: tuple):
