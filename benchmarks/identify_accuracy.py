@@ -82,6 +82,8 @@ def main() -> None:
                     help="also simulate the reconstructed scene with the true parameters and velocity and report its "
                          "IoU with the masks: above the fit's, the optimiser stopped short; at or below it, the data "
                          "(or the reconstruction) prefer the values found")
+    ap.add_argument("--raise-collider", type=float, default=0.0, metavar="M",
+                    help="raise a box's top by M metres (the data's and the true one's): off the node row it lies on")
     ap.add_argument("--out", default=None, help="append the rows to this .jsonl file")
     ap.add_argument("--table", nargs="+", default=None, metavar="JSONL",
                     help="only print the rows of these .jsonl files as one markdown table")
@@ -89,6 +91,10 @@ def main() -> None:
     if args.table:
         print_table([json.loads(line) for path in args.table for line in Path(path).read_text().splitlines() if line])
         return
+    if args.raise_collider:
+        if COLLIDERS[args.collider]["type"] != "box":
+            ap.error("--raise-collider is for the box colliders")
+        COLLIDERS[args.collider]["hi"][1] += args.raise_collider  # the scene, the data and the true collider
     spec = drop_scene(args.collider, material=args.material)
     truth = MATERIAL_TRUTHS[args.material]
     truth_v = np.asarray(spec["bodies"][0]["velocity"], float)
@@ -137,6 +143,7 @@ def main() -> None:
                                  obs.masks)
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
+                "collider_raised_m": args.raise_collider,
                 "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb,
                 "collider_rgb": args.collider_rgb, "refine_velocity": args.refine_velocity, "renderer": args.renderer, "num_pixels": args.num_pixels,
                 "views": args.views, "res": args.res, "min_elevation": args.min_elevation, "max_steps": args.max_steps,
