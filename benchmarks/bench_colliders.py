@@ -6,6 +6,7 @@
     python benchmarks/bench_colliders.py --cost --breakdown  # ... and where CPIC's time goes
     python benchmarks/bench_colliders.py --images        # docs/img/colliders_*.png
     python benchmarks/bench_colliders.py --thickness     # pile height vs plate thickness (+ its picture)
+    python benchmarks/bench_colliders.py --placement     # a resting block vs where the face lies between node rows
 
 Modes (``collision`` scene key): ``cpic`` (particle-wise CPIC, the default), ``grid``
 (grid-level signed-distance condition, AS-DiffMPM's GOP-DiffMPM) and ``particles`` (heavy
@@ -302,6 +303,78 @@ def _thickness_plot(rows, plane, snapshots, dx, target: Path) -> None:
     print(f"wrote {target}", flush=True)
 
 
+def placement_scene(offsets, kind: str, contact: str = "slip", dx: float = 0.05) -> dict:
+    """2D elastic blocks (0.2 x 0.1 m, E = 50 kPa, 2 x 2 particles a cell) dropped at 1 m/s, one
+    per face offset (metres above the node row at 0.2 m): on CPIC boxes (``kind="box"``, one
+    scene) or on a grid-level plane (``kind="plane"``, one offset per scene), 2 s."""
+    material = {"model": "elastic", "E": 5e4, "nu": 0.3, "density": 1000.0}
+    tops = [0.2 + o for o in offsets]
+    bodies = [{"shape": "box", "lo": [0.2 + 0.6 * k, 0.3], "hi": [0.4 + 0.6 * k, 0.4], "ppc": 4, "velocity": [0, -1.0],
+               "material": material, "name": f"block{k}"} for k in range(len(tops))]
+    if kind == "box":
+        colliders = [{"type": "box", "name": f"box{k}", "lo": [0.1 + 0.6 * k, 0.0], "hi": [0.5 + 0.6 * k, top],
+                      "contact": contact} for k, top in enumerate(tops)]
+    else:
+        colliders = [{"type": "plane", "name": "plane", "point": [0.0, tops[0]], "normal": [0.0, 1.0], "contact": contact}]
+    return {"dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [0.6 * len(tops), 0.6]}, "frames": 48,
+            "frame_dt": 1 / 24, "substeps": 40, "gravity": [0, -9.8], "bodies": bodies, "colliders": colliders}
+
+
+def placement(out_dir: Path = ROOT / "docs" / "img", steps: int = 11) -> list[dict]:
+    """How high an elastic block rests on a flat face, and how tall it stays, as the face moves
+    across one cell (docs/colliders.md, "Where a face lies between node rows"): CPIC boxes
+    (slip) and the grid-level plane, dx = 0.05 m; the picture ``docs/img/colliders_placement.png``."""
+    from jaxmpm.step import run_frames
+
+    dx = 0.05
+    offsets = [dx * i / (steps - 1) * 0.999 for i in range(steps)]  # [0, 0.999 dx]: the last stops short of the next row
+    offsets = sorted(set(offsets + [0.01 * dx]))
+    rows = []
+    print("\n### A resting elastic block vs where the face lies (2D, dx = 0.05 m, 2 s)\n")
+    print("| face above the node row (dx) | mode | lowest particle above the face (mm) | block height (mm, 75 unloaded) |")
+    print("|---|---|---|---|")
+    runs = [("cpic box", [offsets])] + [("grid plane", [[o] for o in offsets])]
+    for mode, groups in runs:
+        for group in groups:
+            scene = load_scene(placement_scene(group, "box" if mode == "cpic box" else "plane"))
+            x = np.asarray(run_frames(scene.model, scene.params).x)
+            for o, sl in zip(group, scene.model.body_slices()):
+                y = x[-1, sl, 1] - (0.2 + o)
+                row = {"offset": o / dx, "mode": mode, "lowest": float(y.min()), "height": float(np.ptp(y)),
+                       "height0": float(np.ptp(x[0, sl, 1]))}
+                rows.append(row)
+                print(f"| {row['offset']:.3f} | {mode} | {1e3 * row['lowest']:.1f} | {1e3 * row['height']:.1f} |", flush=True)
+    _placement_plot(rows, dx, out_dir / "colliders_placement.png")
+    return rows
+
+
+def _placement_plot(rows, dx, target: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for mode, style in (("cpic box", "o-"), ("grid plane", "s--")):
+        pick = sorted((r for r in rows if r["mode"] == mode), key=lambda r: r["offset"])
+        off = [r["offset"] for r in pick]
+        axes[0].plot(off, [1e3 * r["lowest"] for r in pick], style, label=mode)
+        axes[1].plot(off, [r["height"] / r["height0"] for r in pick], style, label=mode)
+    axes[0].axhline(1e3 * dx / 4, color="0.4", lw=1, label="material's edge on the face")
+    axes[0].set_ylabel("lowest particle above the face (mm)")
+    axes[1].axhline(1.0, color="0.4", lw=1)
+    axes[1].set_ylabel("block height / unloaded")
+    for ax in axes:
+        ax.set_xlabel("face above the node row (cells)")
+        ax.legend(fontsize=7)
+    fig.suptitle("an elastic block at rest on a face, 2D, dx = 50 mm (2 s after a 1 m/s drop)", fontsize=10)
+    fig.tight_layout()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(target, dpi=110)
+    plt.close(fig)
+    print(f"wrote {target}", flush=True)
+
+
 def _print_row(r):
     print(f"| {r['scene']} | {r['dx']} | {r['mode']} | {r['n']} | {r['depth'] / r['dx']:+.2f} | "
           f"{1e3 * r['depth']:+.1f} | {r['leaked']} | {'yes' if r['nan'] else 'no'} | {r['secs']:.0f} |", flush=True)
@@ -442,10 +515,11 @@ def main(argv=None) -> int:
     parser.add_argument("--cost", action="store_true")
     parser.add_argument("--images", action="store_true")
     parser.add_argument("--thickness", action="store_true", help="pile thickness vs box thickness (+ picture)")
+    parser.add_argument("--placement", action="store_true", help="a resting block vs the face's offset from a node row")
     parser.add_argument("--breakdown", action="store_true", help="with --cost: time CPIC's stages one by one")
     parser.add_argument("--quick", action="store_true", help="fewer resolutions")
     args = parser.parse_args(argv)
-    every = not (args.accuracy or args.cost or args.images or args.thickness)
+    every = not (args.accuracy or args.cost or args.images or args.thickness or args.placement)
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, x64={jax.config.jax_enable_x64}")
     if every or args.accuracy:
         accuracy(args.quick)
@@ -455,6 +529,8 @@ def main(argv=None) -> int:
         images()
     if every or args.thickness:
         thickness()
+    if every or args.placement:
+        placement()
     return 0
 
 
