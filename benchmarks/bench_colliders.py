@@ -303,26 +303,10 @@ def _thickness_plot(rows, plane, snapshots, dx, target: Path) -> None:
     print(f"wrote {target}", flush=True)
 
 
-def placement_scene(offsets, kind: str, contact: str = "slip", dx: float = 0.05) -> dict:
-    """2D elastic blocks (0.2 x 0.1 m, E = 50 kPa, 2 x 2 particles a cell) dropped at 1 m/s, one
-    per face offset (metres above the node row at 0.2 m): on CPIC boxes (``kind="box"``, one
-    scene) or on a grid-level plane (``kind="plane"``, one offset per scene), 2 s."""
-    material = {"model": "elastic", "E": 5e4, "nu": 0.3, "density": 1000.0}
-    tops = [0.2 + o for o in offsets]
-    bodies = [{"shape": "box", "lo": [0.2 + 0.6 * k, 0.3], "hi": [0.4 + 0.6 * k, 0.4], "ppc": 4, "velocity": [0, -1.0],
-               "material": material, "name": f"block{k}"} for k in range(len(tops))]
-    if kind == "box":
-        colliders = [{"type": "box", "name": f"box{k}", "lo": [0.1 + 0.6 * k, 0.0], "hi": [0.5 + 0.6 * k, top],
-                      "contact": contact} for k, top in enumerate(tops)]
-    else:
-        colliders = [{"type": "plane", "name": "plane", "point": [0.0, tops[0]], "normal": [0.0, 1.0], "contact": contact}]
-    return {"dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [0.6 * len(tops), 0.6]}, "frames": 48,
-            "frame_dt": 1 / 24, "substeps": 40, "gravity": [0, -9.8], "bodies": bodies, "colliders": colliders}
-
-
 def placement(out_dir: Path = ROOT / "docs" / "img", steps: int = 11) -> list[dict]:
     """How high an elastic block rests on a flat face, and how tall it stays, as the face moves
-    across one cell (docs/colliders.md, "Where a face lies between node rows"): CPIC boxes
+    across one cell (docs/colliders.md, "Where a face lies between node rows";
+    ``collider_scenes.placement_spec``, shared with tests/test_collider_thickness.py): CPIC boxes
     (slip) and the grid-level plane, dx = 0.05 m; the picture ``docs/img/colliders_placement.png``."""
     from jaxmpm.step import run_frames
 
@@ -336,10 +320,11 @@ def placement(out_dir: Path = ROOT / "docs" / "img", steps: int = 11) -> list[di
     runs = [("cpic box", [offsets])] + [("grid plane", [[o] for o in offsets])]
     for mode, groups in runs:
         for group in groups:
-            scene = load_scene(placement_scene(group, "box" if mode == "cpic box" else "plane"))
+            spec, tops = collider_scenes.placement_spec(group, "box" if mode == "cpic box" else "plane", dx=dx)
+            scene = load_scene(spec)
             x = np.asarray(run_frames(scene.model, scene.params).x)
-            for o, sl in zip(group, scene.model.body_slices()):
-                y = x[-1, sl, 1] - (0.2 + o)
+            for o, top, sl in zip(group, tops, scene.model.body_slices()):
+                y = x[-1, sl, 1] - top
                 row = {"offset": o / dx, "mode": mode, "lowest": float(y.min()), "height": float(np.ptp(y)),
                        "height0": float(np.ptp(x[0, sl, 1]))}
                 rows.append(row)

@@ -23,7 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .colliders import Collider
+from .colliders import Collider, Plane
 from .constitutive import Material
 from .state import Grid, State, make_state
 
@@ -225,8 +225,6 @@ def inert_contact_parameter(model: Model, k: int, name: str) -> str | None:
     (planes excepted: they act on the grid in every mode); sticky contact stops all sliding and
     bouncing; slip contact is frictionless.
     """
-    from .colliders import Plane
-
     collider = model.colliders[k]
     if model.collision == Collision.PARTICLES and not isinstance(collider, Plane):
         return "boundary particles (collision = 'particles') are sticky and ignore friction and restitution"
@@ -240,8 +238,6 @@ def inert_contact_parameter(model: Model, k: int, name: str) -> str | None:
 def weak_restitution(model: Model, k: int) -> bool:
     """Whether collider ``k``'s restitution acts only through CPIC's ghost nodes
     (:data:`CPIC_RESTITUTION_NOTE`): a non-planar, non-sticky collider in ``"cpic"`` mode."""
-    from .colliders import Plane
-
     collider = model.colliders[k]
     return model.collision == Collision.CPIC and not isinstance(collider, Plane) and collider.contact != "sticky"
 

@@ -265,3 +265,29 @@ def drop_run(spec: dict, tops, last: int = 5) -> tuple[list[dict], object]:
         p["volume"] = float(volumes[i])
         out.append(p)
     return out, traj
+
+
+#: The face placements of the resting-block scene: metres above the node row at 0.2 m.
+PLACEMENT_ROW = 0.2
+
+
+def placement_spec(offsets, kind: str = "box", contact: str = "slip", dx: float = 0.05) -> tuple[dict, list[float]]:
+    """2D elastic blocks (0.2 x 0.1 m, E = 50 kPa, 2 x 2 particles a cell) dropped at 1 m/s, one
+    per face offset (metres above the node row at :data:`PLACEMENT_ROW`), 2 s: on boxes 0.6 m
+    apart (``kind="box"``) or on a plane (``kind="plane"``, one offset). Returns the spec and
+    each block's face height (docs/colliders.md, "Where a face lies between node rows")."""
+    tops = [PLACEMENT_ROW + o for o in offsets]
+    material = {"model": "elastic", "E": 5e4, "nu": 0.3, "density": 1000.0}
+    bodies = [{"shape": "box", "lo": [0.2 + 0.6 * k, 0.3], "hi": [0.4 + 0.6 * k, 0.4], "ppc": 4,
+               "velocity": [0, -1.0], "material": material, "name": f"block{k}"} for k in range(len(tops))]
+    if kind == "box":
+        colliders = [{"type": "box", "name": f"box{k}", "lo": [0.1 + 0.6 * k, 0.0], "hi": [0.5 + 0.6 * k, top],
+                      "contact": contact} for k, top in enumerate(tops)]
+    else:
+        if len(tops) != 1:
+            raise ValueError("a plane scene takes one offset")
+        colliders = [{"type": "plane", "name": "plane", "point": [0.0, tops[0]], "normal": [0.0, 1.0],
+                      "contact": contact}]
+    spec = {"dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [0.6 * len(tops), 0.6]}, "frames": 48,
+            "frame_dt": 1 / 24, "substeps": 40, "gravity": [0, -9.8], "bodies": bodies, "colliders": colliders}
+    return spec, tops

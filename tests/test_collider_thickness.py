@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from collider_scenes import DROP_MATERIALS, THICKNESSES, drop_run, drop_spec, drop_substeps
+from collider_scenes import DROP_MATERIALS, THICKNESSES, drop_run, drop_spec, drop_substeps, placement_spec
 from scenes import slow
 
 from jaxmpm.scene import load_scene
@@ -119,16 +119,8 @@ def test_a_resting_elastic_block_keeps_its_shape_and_height_wherever_the_face_li
     misses the squash: J stays 0.99) and its lowest particle rests half a particle spacing
     (dx / 4: the material's edge on the face) above the top, within dx / 4. Measured: heights
     54.7 / 77.4 / 77.4 mm of 75; lowest particle 8.1 / 53.0 / 28.5 mm above the top."""
-    dx, tops = 0.05, (0.2, 0.2005, 0.225)
-    material = {"model": "elastic", "E": 5e4, "nu": 0.3, "density": 1000.0}
-    spec = {
-        "dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [1.8, 0.6]}, "frames": 48, "frame_dt": 1 / 24,
-        "substeps": 40, "gravity": [0, -9.8],
-        "bodies": [{"shape": "box", "lo": [0.2 + 0.6 * k, 0.3], "hi": [0.4 + 0.6 * k, 0.4], "ppc": 4,
-                    "velocity": [0, -1.0], "material": material, "name": f"block{k}"} for k in range(3)],
-        "colliders": [{"type": "box", "name": f"box{k}", "lo": [0.1 + 0.6 * k, 0.0], "hi": [0.5 + 0.6 * k, top],
-                       "contact": "slip"} for k, top in enumerate(tops)],
-    }
+    dx = 0.05
+    spec, tops = placement_spec([0.0, 0.0005, 0.025], dx=dx)
     scene = load_scene(spec)
     x = np.asarray(run_frames(scene.model, scene.params).x)
     for body, top in zip(scene.model.body_slices(), tops):
