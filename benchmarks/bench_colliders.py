@@ -7,6 +7,7 @@
     python benchmarks/bench_colliders.py --images        # docs/img/colliders_*.png
     python benchmarks/bench_colliders.py --thickness     # pile height vs plate thickness (+ its picture)
     python benchmarks/bench_colliders.py --placement     # a resting block vs where the face lies between node rows
+    python benchmarks/bench_colliders.py --convergence   # the drop's pile on a plane and on boxes vs dx
 
 Modes (``collision`` scene key): ``cpic`` (particle-wise CPIC, the default), ``grid``
 (grid-level signed-distance condition, AS-DiffMPM's GOP-DiffMPM) and ``particles`` (heavy
@@ -27,7 +28,7 @@ import numpy as np
 
 from jaxmpm.model import initial_state
 from jaxmpm.scene import load_scene
-from jaxmpm.step import simulate, step
+from jaxmpm.step import simulate, stable_substeps, step
 
 MODES = ("cpic", "grid", "particles")
 FLUID = {"model": "newtonian", "mu": 1.0, "kappa": 1e4}
@@ -333,6 +334,47 @@ def placement(out_dir: Path = ROOT / "docs" / "img", steps: int = 11) -> list[di
     return rows
 
 
+def convergence(materials=("sand", "newtonian"), resolutions=(0.02, 0.01, 0.005), times=(0.4, 1.2)) -> list[dict]:
+    """The thickness tests' 2D drop (``collider_scenes.drop_spec``: sticky, 1 m/s) on the plane
+    and on thick CPIC boxes with their top on a node row and half a cell above one, at finer
+    grids and for longer (docs/colliders.md, "Where a face lies between node rows"): the
+    reference the tests' coarse piles are compared with. Each pile is measured over the
+    0.1 s ending at each of ``times``."""
+    import tempfile
+
+    cs = collider_scenes
+    frame_dt = 0.02
+    last = int(round(0.1 / frame_dt))
+    marks = [int(round(t / frame_dt)) for t in times]
+    rows = []
+    print("\n### The 2D drop's pile vs dx (sticky; thickness and footprint: all particles / 1st-99th percentile)\n")
+    print("| material | dx (m) | substeps | collider | t (s) | thickness (mm) | bulk thickness (mm) | footprint (mm) | "
+          "bulk footprint (mm) | centre of mass above the face (mm) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for material in materials:
+            for dx in resolutions:
+                runs = [("plane", [("plane", None, True)]), ("box", [("box", None, True), ("box", None, False)])]
+                for kind, stations in runs:
+                    spec, tops = cs.drop_spec(2, material, stations, tmp, frames=max(marks), dx=dx)
+                    # the viscous limit falls as dx^2: keep the stress-wave CFL number at or below the drop's 0.5
+                    scene = load_scene(spec)
+                    spec["substeps"] = max(spec["substeps"], stable_substeps(scene.model, scene.params, limit=0.5))
+                    _, traj = cs.drop_run(spec, tops, last=last)
+                    x = np.asarray(traj.x)
+                    sls = scene.model.body_slices()
+                    for i, (station, top, sl) in enumerate(zip(stations, tops, sls)):
+                        name = "plane" if kind == "plane" else ("box, top on a row" if station[2] else "box, top half a cell up")
+                        for t, mark in zip(times, marks):
+                            p = cs.pile(x[mark + 1 - last : mark + 1, sl], top, cs.station_centre(i))
+                            row = dict(material=material, dx=dx, substeps=spec["substeps"], collider=name, time=t, **p)
+                            rows.append(row)
+                            print(f"| {material} | {dx:g} | {spec['substeps']} | {name} | {t:g} | {1e3 * p['thickness']:.1f} | "
+                                  f"{1e3 * p['bulk_thickness']:.1f} | {1e3 * p['footprint']:.0f} | "
+                                  f"{1e3 * p['bulk_footprint']:.0f} | {1e3 * p['com'][1]:.1f} |", flush=True)
+    return rows
+
+
 def _placement_plot(rows, dx, target: Path) -> None:
     import matplotlib
 
@@ -501,10 +543,13 @@ def main(argv=None) -> int:
     parser.add_argument("--images", action="store_true")
     parser.add_argument("--thickness", action="store_true", help="pile thickness vs box thickness (+ picture)")
     parser.add_argument("--placement", action="store_true", help="a resting block vs the face's offset from a node row")
+    parser.add_argument("--convergence", action="store_true", help="the drop's pile on a plane and on boxes vs dx")
+    parser.add_argument("--dx", default="0.02,0.01,0.005", help="with --convergence: grid spacings, m")
+    parser.add_argument("--materials", default="sand,newtonian", help="with --convergence: the drop's materials")
     parser.add_argument("--breakdown", action="store_true", help="with --cost: time CPIC's stages one by one")
     parser.add_argument("--quick", action="store_true", help="fewer resolutions")
     args = parser.parse_args(argv)
-    every = not (args.accuracy or args.cost or args.images or args.thickness or args.placement)
+    every = not (args.accuracy or args.cost or args.images or args.thickness or args.placement or args.convergence)
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, x64={jax.config.jax_enable_x64}")
     if every or args.accuracy:
         accuracy(args.quick)
@@ -516,6 +561,8 @@ def main(argv=None) -> int:
         thickness()
     if every or args.placement:
         placement()
+    if every or args.convergence:
+        convergence(tuple(args.materials.split(",")), tuple(float(v) for v in args.dx.split(",")))
     return 0
 
 

@@ -191,14 +191,18 @@ def drop_substeps(dim: int) -> tuple[float, int, int]:
 
 
 def drop_spec(dim: int, material: str, stations, folder=None, collision: str = "cpic", contact: str = "sticky",
-              friction: float = 0.0, frames: int | None = None) -> tuple[dict, list[float]]:
+              friction: float = 0.0, frames: int | None = None, dx: float | None = None) -> tuple[dict, list[float]]:
     """Blocks (0.16 x 0.1 m in 2D, 0.2 x 0.1 x 0.2 m in 3D) dropped at 1 m/s from 4 cm above the
     top surface of each station's collider.
 
     ``stations``: ``(kind, thickness in cells or None, on_row)`` per station (a ``plane``
-    must be alone). Returns the spec and each station's top-surface height.
+    must be alone). ``dx``: another grid than :func:`drop_substeps`'s, with the substeps
+    scaled to keep its stress-wave CFL number. Returns the spec and each station's
+    top-surface height.
     """
-    dx, substeps, default_frames = drop_substeps(dim)
+    default_dx, substeps, default_frames = drop_substeps(dim)
+    dx = dx or default_dx
+    substeps = int(round(substeps * default_dx / dx))
     half = 0.08 if dim == 2 else 0.1
     bodies, colliders, tops = [], [], []
     for i, (kind, thickness, on_row) in enumerate(stations):
@@ -235,12 +239,21 @@ def pile(x: np.ndarray, top: float, x0: float) -> dict:
     """What a user sees of a pile resting on a surface at ``top`` about ``x0``, from the
     positions of its last frames ``(T, n, D)`` (m): its height above the surface and its
     thickness (highest particle minus lowest; the mean over the frames), footprint (extent
-    along x), centre of mass relative to ``(x0, top)``, and the lowest particle over all frames."""
+    along x), centre of mass relative to ``(x0, top)``, and the lowest particle over all frames.
+    ``bulk_thickness`` and ``bulk_footprint`` are the same extents between the 1st and 99th
+    percentiles, which grains splashed away from the pile do not move."""
     y = x[..., 1]
+
+    def bulk(a):
+        lo, hi = np.percentile(a, [1.0, 99.0], axis=1)
+        return float(np.mean(hi - lo))
+
     return {
         "height": float(np.mean(y.max(axis=1)) - top),
         "thickness": float(np.mean(y.max(axis=1) - y.min(axis=1))),
         "footprint": float(np.mean(np.ptp(x[..., 0], axis=1))),
+        "bulk_thickness": bulk(y),
+        "bulk_footprint": bulk(x[..., 0]),
         "com": x[-1].mean(axis=0) - np.asarray([x0, top, 0.5][: x.shape[-1]]),
         "lowest": float(y.min() - top),
     }
