@@ -197,8 +197,9 @@ def drop_spec(dim: int, material: str, stations, folder=None, collision: str = "
 
     ``stations``: ``(kind, thickness in cells or None, on_row)`` per station (a ``plane``
     must be alone). ``dx``: another grid than :func:`drop_substeps`'s, with the substeps
-    scaled to keep its stress-wave CFL number. Returns the spec and each station's
-    top-surface height.
+    scaled by the same ratio. That keeps a solid's stress-wave CFL number; a viscous fluid's
+    grows as dx falls (``benchmarks/bench_colliders.py --convergence`` raises its substeps).
+    Returns the spec and each station's top-surface height.
     """
     default_dx, substeps, default_frames = drop_substeps(dim)
     dx = dx or default_dx
