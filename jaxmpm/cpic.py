@@ -194,7 +194,8 @@ def build_collision_field(
         distance=jnp.asarray(dist, dtype),
         normal=jnp.asarray(nrm, dtype),
         stencil_bits=jnp.asarray(stencil_side_bits(side.astype(np.int8).reshape(grid.shape))),
-        rows=jnp.asarray(np.concatenate([np.where(aff, side * dist, 0.0)[:, None], np.where(aff[:, None], nrm, 0.0)], -1), dtype),
+        # the signed distance of a node on the surface keeps its side (side_bits)
+        rows=jnp.asarray(np.concatenate([np.where(aff, side * np.maximum(dist, ON_SURFACE * grid.dx), 0.0)[:, None], np.where(aff[:, None], nrm, 0.0)], -1), dtype),
         shape=tuple(grid.shape),
         band_width=width,
         name=collider.name,
@@ -347,8 +348,41 @@ def _node_positions(grid: Grid, nodes: np.ndarray) -> np.ndarray:
     return np.asarray(grid.origin, float) + ijk * grid.dx
 
 
-def _sign(x: np.ndarray) -> np.ndarray:
-    return np.where(x >= 0, 1, -1).astype(np.int8)
+#: A node within this many cells of a collider's surface lies *on* it (round-off).
+ON_SURFACE = 1e-9
+
+
+def _sign(x: np.ndarray, dx: float) -> np.ndarray:
+    """The side of a node at signed distance ``x`` (m). A node on the surface
+    (:data:`ON_SURFACE`) is on its ``-`` side, as a grid-level plane counts it
+    (:func:`jaxmpm.step.apply_grid_colliders`): counted on the ``+`` side, a node on a face with
+    material resting on it supported nothing, and the material was squashed into the face
+    (docs/colliders.md, "Where a face lies between node rows"). The field builders put a node
+    on a convex edge or corner back on the ``+`` side (:func:`_on_convex_crease`)."""
+    return np.where(x > ON_SURFACE * dx, 1, -1).astype(np.int8)
+
+
+def _on_convex_crease(
+    node: np.ndarray, touching: np.ndarray, corners: np.ndarray, normals: np.ndarray, tol: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the nodes that lie on a mesh's surface lie on a convex edge or corner (NumPy).
+
+    ``node (P,)`` and ``touching (P,)`` pair each such node with every face it lies on (to
+    within ``tol``, metres); ``corners (F, D, D)`` and ``normals (F, D)`` are the faces'. A node
+    is on a convex crease when no face it lies on has another's centroid in front of its
+    plane, and some face has one behind: a box's edge or corner, not a vertex or edge inside a
+    flat face (all centroids on the plane), nor a concave crease. Returns the nodes (sorted,
+    unique) and a flag for each.
+    """
+    nodes = np.unique(node)
+    convex = np.zeros(len(nodes), bool)
+    centroid = corners.mean(axis=1)
+    offset = np.sum(corners[:, 0] * normals, axis=-1)  # each face's plane: n·x = offset
+    for k, n in enumerate(nodes):
+        faces = touching[node == n]
+        height = normals[faces] @ centroid[faces].T - offset[faces, None]  # centroid g over plane f
+        convex[k] = np.all(height <= tol) and np.any(height < -tol)
+    return nodes, convex
 
 
 def _keep_nearest(best: np.ndarray, best_prim: np.ndarray, nid, key, prim) -> None:
@@ -369,7 +403,7 @@ def _field_plane(col: Plane, grid: Grid, width: float):
     n = np.asarray(col.normal)
     h = (x - np.asarray(col.point)) @ n
     aff[:] = np.abs(h) < width
-    side[aff] = _sign(h[aff])
+    side[aff] = _sign(h[aff], grid.dx)
     dist[aff] = np.abs(h[aff])
     nrm[aff] = n
     return aff, side, dist, nrm
@@ -389,7 +423,6 @@ def _field_box(col: Box, grid: Grid, width: float, strict: bool):
     out_len = np.linalg.norm(qp, axis=-1)
     outside = out_len > 0
     sd = np.where(outside, out_len, np.max(q, axis=-1))
-    sd = np.where(np.abs(sd) <= 1e-9 * grid.dx, 0.0, sd)  # a node on a face is outside, whatever the round-off
     sgn = np.where(y >= 0, 1.0, -1.0)
     face = np.eye(y.shape[1])[np.argmax(q, axis=-1)]
     n_loc = np.where(outside[:, None], sgn * qp / np.where(outside, out_len, 1.0)[:, None], sgn * face)
@@ -398,7 +431,10 @@ def _field_box(col: Box, grid: Grid, width: float, strict: bool):
         ok &= np.sum(q > 0, axis=-1) <= 1
     sel = nid[ok]
     aff[sel] = True
-    side[sel] = _sign(sd[ok])
+    # a node on an edge or a corner (on two faces' planes or more) is outside (_sign)
+    tie = ON_SURFACE * grid.dx
+    on_edge = (np.abs(sd) <= tie) & (np.sum(np.abs(q) <= tie, axis=-1) >= 2)
+    side[sel] = np.where(on_edge[ok], 1, _sign(sd[ok], grid.dx))
     dist[sel] = np.abs(sd[ok])
     nrm[sel] = n_loc[ok] @ r.T
     return aff, side, dist, nrm
@@ -415,6 +451,8 @@ def _field_mesh(col: MeshCollider, grid: Grid, width: float, strict: bool, max_p
     best = np.full(grid.num_nodes, np.inf)
     best_face = np.full(grid.num_nodes, -1, np.int64)
     w2 = width * width
+    tie = ON_SURFACE * grid.dx
+    touch_node, touch_face = [], []  # the (node, face) pairs with the node on the face
 
     def closest(p, face):
         c = corners[face]
@@ -437,6 +475,9 @@ def _field_mesh(col: MeshCollider, grid: Grid, width: float, strict: bool, max_p
         keep = d2 < w2
         if keep.any():
             _keep_nearest(best, best_face, nid[keep], d2[keep], prim[keep])
+        on = d2 <= tie * tie
+        touch_node.append(nid[on])
+        touch_face.append(prim[on])
 
     nodes = np.flatnonzero(best_face >= 0)
     if nodes.size == 0:
@@ -459,7 +500,11 @@ def _field_mesh(col: MeshCollider, grid: Grid, width: float, strict: bool, max_p
         pn[is_edge] = np.asarray(col.edge_normals)[eid]
         boundary[is_edge] = np.asarray(col.edge_boundary)[eid]
     h_face = np.sum(diff * fn[face], axis=-1)
-    s = np.where(inside, _sign(h_face), _sign(np.sum(diff * pn, axis=-1)))
+    s = np.where(inside, _sign(h_face, grid.dx), _sign(np.sum(diff * pn, axis=-1), grid.dx))
+    # a node on a convex edge or corner is outside (_sign)
+    none = [np.zeros(0, np.int64)]
+    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_face or none), corners, fn, tie)
+    s[np.isin(nodes, crease[convex])] = 1
     safe_d = np.where(d > 0, d, 1.0)[:, None]
     n_feature = np.where((d > 0)[:, None], s[:, None] * diff / safe_d, pn)
     n_out = np.where(inside[:, None], fn[face], n_feature)
@@ -500,7 +545,7 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
     k = best_disk[nodes]
     h = np.sum((_node_positions(grid, nodes) - c[k]) * n[k], axis=-1)
     aff[nodes] = True
-    side[nodes] = _sign(h)
+    side[nodes] = _sign(h, grid.dx)
     dist[nodes] = np.abs(h)
     nrm[nodes] = n[k]
     return aff, side, dist, nrm
@@ -913,7 +958,7 @@ def side_bits(nodes: NodeSample, phi, normal):
     affine = nodes.affine
     opposed = affine & (row_dot(nodes.normal, normal[None]) < OPPOSED_COS)
     ahead = phi[None] + row_dot(normal[None], nodes.offset)
-    flags = (affine & (nodes.node_sd >= 0), affine & (nodes.node_sd < 0), opposed & (ahead < 0), opposed & (ahead > 0))
+    flags = (affine & (nodes.node_sd > 0), affine & (nodes.node_sd <= 0), opposed & (ahead < 0), opposed & (ahead > 0))
     # node o's flag as bit o, OR-ed over the nodes with elementwise ops (a reduction over the
     # node axis is a slow loop on XLA's CPU backend)
     def bits(f):

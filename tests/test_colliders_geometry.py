@@ -380,3 +380,47 @@ def test_with_contact_swaps_the_contact_law_or_motion_and_keeps_the_shape():
         box.with_contact("glue")
     with pytest.raises(SceneError, match="'motion' must be a callable"):
         box.with_contact(motion=3.0)
+
+
+def _square_mesh(lo: float, hi: float, dim: int) -> MeshCollider:
+    """The box ``[lo, hi]^dim`` as a mesh with vertices at the middle of its edges and faces (a
+    subdivided cube; in 2D a closed 8-segment polyline, counter-clockwise): features that lie
+    on the box's flat faces, not on its edges."""
+    if dim == 3:
+        tm = trimesh.creation.box(extents=[hi - lo] * 3).subdivide()
+        return MeshCollider(tm.vertices + (lo + hi) / 2, tm.faces, name="cube")
+    mid = (lo + hi) / 2
+    ring = [(lo, lo), (mid, lo), (hi, lo), (hi, mid), (hi, hi), (mid, hi), (lo, hi), (lo, mid)]
+    return MeshCollider(np.asarray(ring), [(k, (k + 1) % 8) for k in range(8)], name="square")
+
+
+@pytest.mark.x64  # exact node positions
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_node_on_a_face_is_inside_and_a_node_on_a_convex_edge_outside_for_every_kind(dim):
+    """Nodes lying exactly on a collider's surface (faces on node rows, as round coordinates
+    put them) get one side whatever the collider's kind. On a face they are inside, as a
+    grid-level plane counts them: outside, a node on a face supports nothing and a body resting
+    on it is squashed (test_collider_thickness.py). On a convex edge or corner they are
+    outside: inside, the edge catches material that flows over it (docs/colliders.md, "Where a
+    face lies between node rows"). A mesh's vertices and edges inside a flat face count as the
+    face."""
+    dx = 1.0 / 16
+    grid = Grid((0.0,) * dim, (1.0,) * dim, dx)
+    lo, hi = 4 * dx, 12 * dx
+    x = grid.node_positions()
+    on_bound = np.isclose(x, lo) | np.isclose(x, hi)
+    within = (x > lo - 1e-9) & (x < hi + 1e-9)
+    on_surface = np.all(within, axis=1) & on_bound.any(axis=1)
+    on_edge = on_surface & (on_bound.sum(axis=1) >= 2)
+    on_face = on_surface & ~on_edge
+    assert on_face.any() and on_edge.any()
+    for collider in (Box([lo] * dim, [hi] * dim, name="box"), _square_mesh(lo, hi, dim)):
+        side = np.asarray(build_collision_field(collider, grid).side)
+        assert np.all(side[on_face] == -1), type(collider).__name__
+        assert np.all(side[on_edge] == 1), type(collider).__name__
+        sd = np.asarray(Box([lo] * dim, [hi] * dim).signed_distance(jnp.asarray(x), 0.0)[0])
+        off = np.asarray(build_collision_field(collider, grid).affinity) & ~on_surface
+        np.testing.assert_array_equal(side[off], np.where(sd[off] > 0, 1, -1))
+    normal = np.eye(dim)[1]
+    side = np.asarray(build_collision_field(Plane(normal * hi, normal, name="plane"), grid).side)
+    assert np.all(side[np.isclose(x[:, 1], hi)] == -1)
