@@ -363,26 +363,32 @@ def _sign(x: np.ndarray, dx: float) -> np.ndarray:
 
 
 def _on_convex_crease(
-    node: np.ndarray, touching: np.ndarray, corners: np.ndarray, normals: np.ndarray, tol: float
+    node: np.ndarray, touching: np.ndarray, centre: np.ndarray, normal: np.ndarray, tol: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Which of the nodes that lie on a mesh's surface lie on a convex edge or corner (NumPy).
+    """Which of the nodes that lie on a collider's surface lie on a convex edge or corner
+    (NumPy).
 
-    ``node (P,)`` and ``touching (P,)`` pair each such node with every face it lies on (to
-    within ``tol``, metres); ``corners (F, D, D)`` and ``normals (F, D)`` are the faces'. A node
-    is on a convex crease when no face it lies on has another's centroid in front of its
-    plane, and some face has one behind: a box's edge or corner, not a vertex or edge inside a
-    flat face (all centroids on the plane), nor a concave crease. Returns the nodes (sorted,
+    ``node (P,)`` and ``touching (P,)`` pair each such node with every primitive (a mesh's
+    face, a surfel) it lies on, to within ``tol`` (m); ``centre (F, D)`` and ``normal (F, D)``
+    are the primitives' centroids and unit normals. A node is on a convex crease when no
+    primitive it lies on has another's centre in front of its plane, and some has one behind:
+    a box's edge or corner; not a vertex or an edge inside a flat face, nor two coplanar
+    surfels (all centres on the plane), nor a concave crease. Returns the nodes (sorted,
     unique) and a flag for each.
     """
-    nodes = np.unique(node)
-    convex = np.zeros(len(nodes), bool)
-    centroid = corners.mean(axis=1)
-    offset = np.sum(corners[:, 0] * normals, axis=-1)  # each face's plane: n·x = offset
-    for k, n in enumerate(nodes):
-        faces = touching[node == n]
-        height = normals[faces] @ centroid[faces].T - offset[faces, None]  # centroid g over plane f
-        convex[k] = np.all(height <= tol) and np.any(height < -tol)
-    return nodes, convex
+    order = np.argsort(node, kind="stable")
+    prim = touching[order]
+    nodes, start, count = np.unique(node[order], return_index=True, return_counts=True)
+    if len(nodes) == 0:
+        return nodes, np.zeros(0, bool)
+    # every (f, g) pair of one node's primitives, grouped by node: f runs over the node's
+    # primitives, and for each f, g runs over them again
+    size = np.repeat(count, count)  # for each (node, primitive) pair, its node's primitive count
+    f = np.repeat(np.arange(len(prim)), size)
+    g = np.repeat(np.repeat(start, count), size) + np.arange(len(f)) - np.repeat(np.cumsum(size) - size, size)
+    height = np.sum((centre[prim[g]] - centre[prim[f]]) * normal[prim[f]], axis=-1)  # g's centre over f's plane
+    first = np.cumsum(count * count) - count * count  # where each node's pairs begin
+    return nodes, (np.maximum.reduceat(height, first) <= tol) & (np.minimum.reduceat(height, first) < -tol)
 
 
 def _keep_nearest(best: np.ndarray, best_prim: np.ndarray, nid, key, prim) -> None:
@@ -503,7 +509,7 @@ def _field_mesh(col: MeshCollider, grid: Grid, width: float, strict: bool, max_p
     s = np.where(inside, _sign(h_face, grid.dx), _sign(np.sum(diff * pn, axis=-1), grid.dx))
     # a node on a convex edge or corner is outside (_sign)
     none = [np.zeros(0, np.int64)]
-    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_face or none), corners, fn, tie)
+    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_face or none), centre, fn, tie)
     s[np.isin(nodes, crease[convex])] = 1
     safe_d = np.where(d > 0, d, 1.0)[:, None]
     n_feature = np.where((d > 0)[:, None], s[:, None] * diff / safe_d, pn)
@@ -528,6 +534,8 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
     best = np.full(grid.num_nodes, np.inf)
     best_disk = np.full(grid.num_nodes, -1, np.int64)
     cut2 = col.cutoff**2
+    tie = ON_SURFACE * grid.dx
+    touch_node, touch_disk = [], []  # the (node, disk) pairs with the node on the disk
     for prim, x, nid in _pair_batches(i0, dims, grid, max_pairs):
         dlt = x - c[prim]
         h = np.sum(dlt * n[prim], axis=-1)
@@ -539,6 +547,9 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
         keep = np.sum(a * a, axis=-1) <= cut2
         if keep.any():
             _keep_nearest(best, best_disk, nid[keep], h[keep] ** 2, prim[keep])
+        on = keep & (np.abs(h) <= tie)
+        touch_node.append(nid[on])
+        touch_disk.append(prim[on])
     nodes = np.flatnonzero(best_disk >= 0)
     if nodes.size == 0:
         return aff, side, dist, nrm
@@ -546,6 +557,10 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
     h = np.sum((_node_positions(grid, nodes) - c[k]) * n[k], axis=-1)
     aff[nodes] = True
     side[nodes] = _sign(h, grid.dx)
+    # a node on a convex crease of the surfels (_sign), as on a mesh's
+    none = [np.zeros(0, np.int64)]
+    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_disk or none), c, n, tie)
+    side[crease[convex]] = 1
     dist[nodes] = np.abs(h)
     nrm[nodes] = n[k]
     return aff, side, dist, nrm

@@ -398,12 +398,12 @@ def _square_mesh(lo: float, hi: float, dim: int) -> MeshCollider:
 @pytest.mark.parametrize("dim", [2, 3])
 def test_a_node_on_a_face_is_inside_and_a_node_on_a_convex_edge_outside_for_every_kind(dim):
     """Nodes lying exactly on a collider's surface (faces on node rows, as round coordinates
-    put them) get one side whatever the collider's kind. On a face they are inside, as a
-    grid-level plane counts them: outside, a node on a face supports nothing and a body resting
-    on it is squashed (test_collider_thickness.py). On a convex edge or corner they are
-    outside: inside, the edge catches material that flows over it (docs/colliders.md, "Where a
-    face lies between node rows"). A mesh's vertices and edges inside a flat face count as the
-    face."""
+    put them) get one side whatever the collider's kind: box, mesh, surfels, plane. On a face
+    they are inside, as a grid-level plane counts them: outside, a node on a face supports
+    nothing and a body resting on it is squashed (test_collider_thickness.py). On a convex
+    edge or corner they are outside: inside, the edge catches material that flows over it
+    (docs/colliders.md, "Where a face lies between node rows"). A mesh's vertices and edges
+    inside a flat face, and coplanar surfels, count as the face."""
     dx = 1.0 / 16
     grid = Grid((0.0,) * dim, (1.0,) * dim, dx)
     lo, hi = 4 * dx, 12 * dx
@@ -421,6 +421,14 @@ def test_a_node_on_a_face_is_inside_and_a_node_on_a_convex_edge_outside_for_ever
         sd = np.asarray(Box([lo] * dim, [hi] * dim).signed_distance(jnp.asarray(x), 0.0)[0])
         off = np.asarray(build_collision_field(collider, grid).affinity) & ~on_surface
         np.testing.assert_array_equal(side[off], np.where(sd[off] > 0, 1, -1))
+    if dim == 3:  # surfels covering the cube, as a reconstruction places them on a box's faces
+        tm = trimesh.creation.box(extents=[hi - lo] * 3).subdivide().subdivide()
+        disks = GaussianDisks(tm.triangles_center + (lo + hi) / 2, normals=tm.face_normals,
+                              scales=np.full(len(tm.faces), np.sqrt(tm.area_faces.mean())), orient="none", name="cover")
+        field = build_collision_field(disks, grid)
+        side, aff = np.asarray(field.side), np.asarray(field.affinity)
+        assert aff[on_surface].all()
+        assert np.all(side[on_face] == -1) and np.all(side[on_edge] == 1)
     normal = np.eye(dim)[1]
     side = np.asarray(build_collision_field(Plane(normal * hi, normal, name="plane"), grid).side)
     assert np.all(side[np.isclose(x[:, 1], hi)] == -1)
