@@ -363,21 +363,23 @@ def _sign(x: np.ndarray, dx: float) -> np.ndarray:
 
 
 def _on_convex_crease(
-    node: np.ndarray, touching: np.ndarray, centre: np.ndarray, normal: np.ndarray, tol: float
+    node: list[np.ndarray], touching: list[np.ndarray], centre: np.ndarray, normal: np.ndarray, tol: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Which of the nodes that lie on a collider's surface lie on a convex edge or corner
     (NumPy).
 
-    ``node (P,)`` and ``touching (P,)`` pair each such node with every primitive (a mesh's
-    face, a surfel) it lies on, to within ``tol`` (m); ``centre (F, D)`` and ``normal (F, D)``
+    ``node`` and ``touching`` (batches of ``(P_b,)`` indices, as the field builders' loops
+    find them) pair each such node with every primitive (a mesh's face, a surfel) it lies on,
+    to within ``tol`` (m); ``centre (F, D)`` and ``normal (F, D)``
     are the primitives' centroids and unit normals. A node is on a convex crease when no
     primitive it lies on has another's centre in front of its plane, and some has one behind:
     a box's edge or corner; not a vertex or an edge inside a flat face, nor two coplanar
     surfels (all centres on the plane), nor a concave crease. Returns the nodes (sorted,
     unique) and a flag for each.
     """
+    node = np.concatenate([np.zeros(0, np.int64), *node])
     order = np.argsort(node, kind="stable")
-    prim = touching[order]
+    prim = np.concatenate([np.zeros(0, np.int64), *touching])[order]
     nodes, start, count = np.unique(node[order], return_index=True, return_counts=True)
     if len(nodes) == 0:
         return nodes, np.zeros(0, bool)
@@ -508,8 +510,7 @@ def _field_mesh(col: MeshCollider, grid: Grid, width: float, strict: bool, max_p
     h_face = np.sum(diff * fn[face], axis=-1)
     s = np.where(inside, _sign(h_face, grid.dx), _sign(np.sum(diff * pn, axis=-1), grid.dx))
     # a node on a convex edge or corner is outside (_sign)
-    none = [np.zeros(0, np.int64)]
-    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_face or none), centre, fn, tie)
+    crease, convex = _on_convex_crease(touch_node, touch_face, centre, fn, tie)
     s[np.isin(nodes, crease[convex])] = 1
     safe_d = np.where(d > 0, d, 1.0)[:, None]
     n_feature = np.where((d > 0)[:, None], s[:, None] * diff / safe_d, pn)
@@ -558,8 +559,7 @@ def _field_disks(col: GaussianDisks, grid: Grid, width: float, max_pairs: int):
     aff[nodes] = True
     side[nodes] = _sign(h, grid.dx)
     # a node on a convex crease of the surfels (_sign), as on a mesh's
-    none = [np.zeros(0, np.int64)]
-    crease, convex = _on_convex_crease(np.concatenate(touch_node or none), np.concatenate(touch_disk or none), c, n, tie)
+    crease, convex = _on_convex_crease(touch_node, touch_disk, c, n, tie)
     side[crease[convex]] = 1
     dist[nodes] = np.abs(h)
     nrm[nodes] = n[k]
