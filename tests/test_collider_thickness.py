@@ -13,8 +13,9 @@ cells of the drop's grid (dx = 0.02 m in 2D, 0.05 m in 3D):
 
 * thickness (highest minus lowest particle, mean over the last 0.1 s): within 0.5 dx of both
   references (measured: within 0.4 dx; the old code's sheets: 0);
-* footprint (extent along x): within 2 dx (sand on a node row spreads 1.5 dx wider than on
-  the grid-level plane, which holds the material half a cell higher);
+* footprint (extent along x): within 2 dx (before session 45, when a node on a face counted
+  outside, sand on a node row spread 1.5 dx wider than on the grid-level plane, which held
+  the material half a cell higher; a thick sticky box on a row now gives the plane's pile);
 * centre of mass: x within 0.25 dx; height above the top surface within 0.5 dx of the thick
   box's and 1.25 dx of the plane's (whose material rests up to a cell higher);
 * no particle crosses: over the whole run none is deeper than 0.5 dx below the top surface;
