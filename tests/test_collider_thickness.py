@@ -127,7 +127,6 @@ def test_a_face_on_a_node_row_holds_a_resting_block_as_a_plane_on_that_row_does(
     assert abs(on_row - plane) < 0.04 * dx, rests
 
 
-
 def test_a_box_edge_on_node_rows_acts_as_the_same_edge_bevelled_by_two_millimetres(tmp_path):
     """The 3D elastic drop of the identification case studies (a 0.2 m block thrown down at
     1 m/s; dx = 0.05 m) lands half on the edge of a box whose top and side lie on node rows.
@@ -155,6 +154,7 @@ def test_a_box_edge_on_node_rows_acts_as_the_same_edge_bevelled_by_two_millimetr
         runs.append(np.asarray(simulate(scene.model, scene.params, checkpoint=None, frames=6).x))
     apart = np.linalg.norm(runs[0] - runs[1], axis=-1).mean(axis=1)
     assert apart[-1] < bevel, apart
+
 
 #: Known defect, measured and not fixed (docs/colliders.md, "Where a face lies between node
 #: rows"): a block at rest on a CPIC box rests up to a cell above the face, depending on where

@@ -414,12 +414,13 @@ def test_a_node_on_a_face_is_inside_and_a_node_on_a_convex_edge_outside_for_ever
     on_edge = on_surface & (on_bound.sum(axis=1) >= 2)
     on_face = on_surface & ~on_edge
     assert on_face.any() and on_edge.any()
-    for collider in (Box([lo] * dim, [hi] * dim, name="box"), _square_mesh(lo, hi, dim)):
-        side = np.asarray(build_collision_field(collider, grid).side)
+    box = Box([lo] * dim, [hi] * dim, name="box")
+    sd = np.asarray(box.signed_distance(jnp.asarray(x), 0.0)[0])
+    for collider in (box, _square_mesh(lo, hi, dim)):
+        field = build_collision_field(collider, grid)
+        side, off = np.asarray(field.side), np.asarray(field.affinity) & ~on_surface
         assert np.all(side[on_face] == -1), type(collider).__name__
         assert np.all(side[on_edge] == 1), type(collider).__name__
-        sd = np.asarray(Box([lo] * dim, [hi] * dim).signed_distance(jnp.asarray(x), 0.0)[0])
-        off = np.asarray(build_collision_field(collider, grid).affinity) & ~on_surface
         np.testing.assert_array_equal(side[off], np.where(sd[off] > 0, 1, -1))
     if dim == 3:  # surfels covering the cube, as a reconstruction places them on a box's faces
         tm = trimesh.creation.box(extents=[hi - lo] * 3).subdivide().subdivide()
