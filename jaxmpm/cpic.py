@@ -370,12 +370,11 @@ def _on_convex_crease(
 
     ``node`` and ``touching`` (batches of ``(P_b,)`` indices, as the field builders' loops
     find them) pair each such node with every primitive (a mesh's face, a surfel) it lies on,
-    to within ``tol`` (m); ``centre (F, D)`` and ``normal (F, D)``
-    are the primitives' centroids and unit normals. A node is on a convex crease when no
-    primitive it lies on has another's centre in front of its plane, and some has one behind:
-    a box's edge or corner; not a vertex or an edge inside a flat face, nor two coplanar
-    surfels (all centres on the plane), nor a concave crease. Returns the nodes (sorted,
-    unique) and a flag for each.
+    to within ``tol`` (m); ``centre (F, D)`` and ``normal (F, D)`` are the primitives'
+    centroids and unit normals. A node is on a convex crease when no primitive it lies on has
+    another's centre in front of its plane, and some has one behind: a box's edge or corner;
+    not a vertex or an edge inside a flat face, nor two coplanar surfels (all centres on the
+    plane), nor a concave crease. Returns the nodes (sorted, unique) and a flag for each.
     """
     node = np.concatenate([np.zeros(0, np.int64), *node])
     order = np.argsort(node, kind="stable")
