@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -76,3 +77,31 @@ def test_dam_break_3d_obstacle_builds_its_sequence_and_runs():
     assert len(seq.observation.probe_names) == 4 and set(seq.probes) == set(seq.observation.probe_names)
     x = _first_steps(seq.model, seq.params, steps=seq.model.substeps, frames=3)
     assert x[-1, :, 0].min() < x[0, :, 0].min()  # the water moves towards the obstacle (−x)
+
+
+def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path):
+    """``--summary-only`` re-simulates the base and the extended model of a ``report.json`` and
+    writes per-gauge errors and the gauge plot (it once crashed on the rollout's return type)."""
+    module = _script("dam_break_3d_obstacle")
+    details = {"causes": ["collider_friction"],
+               "extended_parameters": {"collider_friction.floor": 0.5, "collider_friction.box": 0.0}}
+    (tmp_path / "report.json").write_text(json.dumps({"details": details}))
+    res = module.summary(tmp_path, dx=0.2, t_end=0.1)
+    assert (tmp_path / "gauges.png").stat().st_size > 0
+    assert json.loads((tmp_path / "summary.json").read_text()) == res
+    assert set(res["gauges"]) == set(module.GAUGES) and res["causes"] == ["collider_friction"]
+    for row in res["gauges"].values():
+        assert np.isfinite([row["rms_base_m"], row["rms_extended_m"]]).all()
+
+
+def test_dam_break_2d_summary_replots_the_three_columns(tmp_path):
+    """The 2D case study's ``--summary-only``: base and extended fronts of every column."""
+    module = _script("dam_break_2d")
+    details = {"base_parameters": {}, "causes": ["collider_friction", "time_offset"],
+               "extended_parameters": {"collider_friction.floor": 0.1, "time_offset.t0": 0.01}}
+    (tmp_path / "report.json").write_text(json.dumps({"details": details}))
+    res = module.summary(tmp_path, cells=3)
+    assert (tmp_path / "fronts_dimensionless.png").stat().st_size > 0
+    assert set(res["columns"]) == set(module.SERIES) and res["t0"] == 0.01
+    for row in res["columns"].values():
+        assert np.isfinite([row["rms_base_m"], row["rms_extended_m"]]).all()
