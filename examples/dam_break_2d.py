@@ -27,7 +27,6 @@ Run (about 20-40 minutes on 2 CPU cores; ``--quick`` for a coarse version)::
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import sys
@@ -35,23 +34,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-
-@functools.cache
-def _compiled_positions():
-    """One compiled rollout (per model structure) returning the particle positions at every
-    output frame, ``(frames, N, D)`` in m."""
-    import equinox as eqx
-
-    from jaxmpm import simulate
-
-    return eqx.filter_jit(lambda model, params: simulate(model, params, checkpoint=None).x)
-
-
-def positions(model, params) -> np.ndarray:
-    """Particle positions (m) at the model's output frames, ``(frames, N, D)``."""
-    return np.asarray(_compiled_positions()(model, params))
-
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data" / "dam_break_2d_front_martin_moyce_1952"
@@ -141,6 +123,7 @@ PHYSICAL = ("collider_friction", "restitution", "drag", "damping", "rate_depende
 def resolution_check(result, cells: int) -> dict:
     """The fitted base model at twice the resolution (dx/2, dt/2): how far the predicted fronts
     move, against the base model's error (the dt/2 check alone does not refine dx)."""
+    from jaxmpm import simulate
     from jaxmpm.scene import load_scene
 
     mu = float(result.base_values.get("mu", WATER_MU))
@@ -150,7 +133,7 @@ def resolution_check(result, cells: int) -> dict:
         fronts = []
         for c in (cells, 2 * cells):
             sc = load_scene(scene_spec(n, c, mu=mu))
-            x = positions(sc.model, sc.params)
+            x = np.asarray(simulate(sc.model, sc.params, checkpoint=None).x)
             h = float(np.max(np.asarray(sc.model.bodies[0].vol0))) ** 0.5
             tt = np.arange(sc.model.frames) * sc.model.frame_dt
             fronts.append(np.interp(t, tt, x[:, :, 0].max(axis=1) + 0.5 * h))
@@ -183,6 +166,7 @@ def summary(out_dir, cells: int) -> dict:
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
+    from jaxmpm import simulate
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -209,7 +193,7 @@ def summary(out_dir, cells: int) -> dict:
                     continue
                 ext = [e for e in causes if e != "time_offset"]
                 params = X.enable(m, params, ext, {e: values.get(e, {}) for e in ext}) if ext else params
-            x = positions(m, params)
+            x = np.asarray(simulate(m, params, checkpoint=None).x)
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             shift = t0 if kind == "extended" else 0.0
             curves[kind] = (tt + shift, front)
@@ -255,6 +239,7 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
+    from jaxmpm import simulate
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -270,7 +255,7 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
         err = np.zeros((len(frictions), len(offsets)))
         for i, mu_b in enumerate(frictions):
             params = X.enable(m, sc.params, ["collider_friction"], {"collider_friction": {"floor": mu_b}})
-            x = positions(m, params)
+            x = np.asarray(simulate(m, params, checkpoint=None).x)
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             for j, t0 in enumerate(offsets):
                 err[i, j] = np.sqrt(np.mean((np.interp(t - t0, tt, front, left=a) - xf) ** 2))

@@ -25,7 +25,6 @@ Run::
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import sys
@@ -33,23 +32,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-
-@functools.cache
-def _compiled_positions():
-    """One compiled rollout (per model structure) returning the particle positions at every
-    output frame, ``(frames, N, D)`` in m."""
-    import equinox as eqx
-
-    from jaxmpm import simulate
-
-    return eqx.filter_jit(lambda model, params: simulate(model, params, checkpoint=None).x)
-
-
-def positions(model, params) -> np.ndarray:
-    """Particle positions (m) at the model's output frames, ``(frames, N, D)``."""
-    return np.asarray(_compiled_positions()(model, params))
-
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data" / "dam_break_3d_obstacle_spheric_test2_kleefsman"
@@ -134,6 +116,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05) -> dict:
     import jax.numpy as jnp
 
     from jaxmpm import extensions as X
+    from jaxmpm import simulate
 
     out_dir = Path(out_dir)
     det = json.loads((out_dir / "report.json").read_text())["details"]
@@ -159,7 +142,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05) -> dict:
         runs["extended"] = (X.enable(m, seq.params, ext, {e: values.get(e, {}) for e in ext}) if ext else seq.params, t0)
     sim = {}
     for kind, (params, shift) in runs.items():
-        x = positions(m, params)
+        x = np.asarray(simulate(m, params, checkpoint=None).x)
         vals = {}
         for g in GAUGES:
             fn = probes[f"gauge_{g}"]
