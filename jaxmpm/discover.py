@@ -1007,8 +1007,8 @@ def discover(
             held-out error is within 1.5 times it has nothing to explain.
         num_pixels: pixels per view and frame for silhouettes.
         prune: refit only candidates whose score is significant at ``alpha``, none that the
-            screen predicts to remove less of the training error than a passing refit of the
-            same step removed, and no second start once the warm start passes.
+            screen predicts to remove less of the training error than the held-out gain of a
+            passing refit of the same step, and no second start once the warm start passes.
             ``False`` refits the ``top`` best from both starts whatever their scores (for
             strongly nonlinear residuals, e.g. silhouettes, where the score can understate
             an effect).
@@ -1132,7 +1132,7 @@ def discover(
         # the rule needs a held-out improvement above the numerical error: when the current
         # held-out error is itself within it, no refit can pass, so none is run
         hopeless = convergence and current_err <= numerical
-        removed = None  # the largest share of the training error a passing refit of this step removed
+        best_gain = None  # the largest held-out gain of a passing refit of this step
 
         def judge(f, c):
             """The selection rule on candidate ``c`` refitted as ``f``: its numbers, and the
@@ -1163,9 +1163,12 @@ def discover(
             if prune and not c.score_p < alpha:
                 c.reason = f"not refitted: the screen is not significant (p {c.score_p:.3g} >= {alpha})"
                 continue
-            if prune and removed is not None and c.score < removed:
+            if prune and best_gain is not None and c.score < best_gain:
+                # selection is by held-out gain, and a refit's held-out gain seldom exceeds the share of
+                # the training error it removes; comparing with the passing refit's training share
+                # instead skipped the selected cause of the 2D dam break (docs/discover.md)
                 c.reason = (f"not refitted: it is predicted to remove {c.score:.1%} of the training error, "
-                            f"less than the {removed:.1%} a passing refit removed")
+                            f"less than the {best_gain:.1%} held-out gain of a passing refit")
                 continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
@@ -1193,7 +1196,7 @@ def discover(
             c.fit, c.cov = f, cov
             c.reason = "; ".join(reasons) if reasons else "passes"
             if not reasons:
-                removed = max(removed or 0.0, 1.0 - f.loss / max(current.loss, 1e-300))
+                best_gain = max(best_gain or 0.0, c.gain)
             say(f"    {c.id}: held-out gain {c.gain:.1%}, LRT {c.lrt:.3g} (p {c.p_value:.3g}) -> {c.reason}")
             if not reasons and (best_cand is None or c.heldout_error < best_cand.heldout_error):
                 best_cand, best_fit = c, f
