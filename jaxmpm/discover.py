@@ -931,6 +931,24 @@ def _linear_screen(J, r, w, base_cols_local, ext_cols_local, lo, hi):
     return rss_b, min(rss_e, rss_b), step[len(base_cols_local):]
 
 
+def pruned_reason(score: float, score_p: float, best_gain: float | None, alpha: float) -> str | None:
+    """Why ``discover``'s prune skips the refit of a candidate, or None to refit it.
+
+    ``score``: the share of the training error the screen predicts the candidate removes, with
+    its p-value ``score_p``; ``best_gain``: the largest held-out gain of a refit that passed in
+    this step (None before one passes). A candidate is skipped when its screen is not
+    significant at ``alpha``, or when it is predicted to remove less of the training error than
+    that held-out gain. Selection is by held-out gain, and a refit seldom gains more held out
+    than it removes in training; comparing with the passing refit's *training* share instead
+    skipped the selected cause of the 2D dam break (docs/discover.md)."""
+    if not score_p < alpha:
+        return f"not refitted: the screen is not significant (p {score_p:.3g} >= {alpha})"
+    if best_gain is not None and score < best_gain:
+        return (f"not refitted: it is predicted to remove {score:.1%} of the training error, "
+                f"less than the {best_gain:.1%} held-out gain of a passing refit")
+    return None
+
+
 def _refit(problem, current: _Fit, theta_initial, free, cols, lin_step, entry_train, max_iter, progress=None,
            good_enough: Callable[[_Fit], bool] | None = None):
     """Fit base + extension from two starts and keep the better training loss: the current fit
@@ -1160,15 +1178,9 @@ def discover(
                 c.reason = (f"not refitted: the held-out error {current_err:.3g} is within the numerical error "
                             f"{numerical:.3g}, so no improvement can exceed it")
                 continue
-            if prune and not c.score_p < alpha:
-                c.reason = f"not refitted: the screen is not significant (p {c.score_p:.3g} >= {alpha})"
-                continue
-            if prune and best_gain is not None and c.score < best_gain:
-                # selection is by held-out gain, and a refit's held-out gain seldom exceeds the share of
-                # the training error it removes; comparing with the passing refit's training share
-                # instead skipped the selected cause of the 2D dam break (docs/discover.md)
-                c.reason = (f"not refitted: it is predicted to remove {c.score:.1%} of the training error, "
-                            f"less than the {best_gain:.1%} held-out gain of a passing refit")
+            skip = pruned_reason(c.score, c.score_p, best_gain, alpha) if prune else None
+            if skip:
+                c.reason = skip
                 continue
             say(f"  refitting base + {c.id}")
             free = current_names + problem.ext_names(c.id)
