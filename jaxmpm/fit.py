@@ -764,19 +764,25 @@ def fit(
 
 
 def outside_their_range(values: dict) -> list[str]:
-    """One note per fitted value outside its parameter's valid range (or not finite), e.g. a
-    log10 parameter whose optimisation variable ran off until ``10^y`` underflowed to 0: the
-    data did not hold it, and a scene with it would not load."""
+    """One note per fitted value outside its parameter's valid range (or not finite), or fitted
+    in a log space and not positive: a log10 parameter whose optimisation variable ran off
+    until ``10^y`` underflowed to 0. The data did not hold it; a scene with it would not load,
+    or (a viscosity or yield stress, whose valid range includes 0) its 0 is the underflow's,
+    not the data's."""
+    advice = ("the data did not hold it (its optimisation variable ran off): do not use this value, fix the "
+              "parameter or fit it from data that constrain it")
     notes = []
     for name, value in values.items():
         d = declaration(name)
         v = np.ravel(np.asarray(value, float))
+        shown = f"{float(v[0]):g}" if v.size == 1 else np.array2string(v, precision=4)
+        unit = f" {d.unit}" if d and d.unit else ""
         if not np.all(np.isfinite(v)) or (d is not None and not all(float(x) in d.range for x in v)):
-            shown = f"{float(v[0]):g}" if v.size == 1 else np.array2string(v, precision=4)
             valid = "finite" if d is None else d.range.text
-            notes.append(f"{name} ended outside its valid range ({valid}): {shown}{' ' + d.unit if d and d.unit else ''}; "
-                         "the data did not hold it (its optimisation variable ran off): do not use this value, fix "
-                         "the parameter or fit it from data that constrain it")
+            notes.append(f"{name} ended outside its valid range ({valid}): {shown}{unit}; {advice}")
+        elif d is not None and d.transform.needs_positive() and not np.all(v > 0):
+            notes.append(f"{name} ended at {shown}{unit}, where its log10 fitting variable is -inf (10^y underflowed); "
+                         f"{advice}")
     return notes
 
 

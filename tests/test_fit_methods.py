@@ -151,6 +151,12 @@ def test_a_fitted_value_outside_its_range_is_named_and_not_called_converged():
                                                 "velocity ended outside its valid range (finite)",
                                                 "body.E ended outside its valid range (> 0)"]
     assert notes[0].split(":")[1].startswith(" 0 Pa;")
+    # a yield stress or viscosity may be 0 in a scene, but fitted in log10 a 0 is an underflow
+    # (seen: the viscoplastic bunny's yield stress, docs/identify.md, session 46)
+    notes = outside_their_range({"yield_stress": np.asarray(0.0, np.float32), "mu": np.asarray(576.0),
+                                 "body.eta": np.asarray(0.0), "floor.friction": np.asarray(0.0)})
+    assert [n.split(",")[0] for n in notes] == ["yield_stress ended at 0 Pa", "body.eta ended at 0 Pa s"]
+    assert "underflowed" in notes[0]
 
 
 def test_every_fit_reports_where_its_time_went(obs, tmp_path, capsys):
