@@ -781,7 +781,7 @@ def outside_their_range(values: dict) -> list[str]:
             valid = "finite" if d is None else d.range.text
             notes.append(f"{name} ended outside its valid range ({valid}): {shown}{unit}; {advice}")
         elif d is not None and d.transform.needs_positive() and not np.all(v > 0):
-            notes.append(f"{name} ended at {shown}{unit}, where its log10 fitting variable is -inf (10^y underflowed); "
+            notes.append(f"{name} ended at {shown}{unit}: fitted in log10, it reaches 0 only where 10^y underflows; "
                          f"{advice}")
     return notes
 

@@ -155,7 +155,7 @@ def test_a_fitted_value_outside_its_range_is_named_and_not_called_converged():
     # (seen: the viscoplastic bunny's yield stress, docs/identify.md, session 46)
     notes = outside_their_range({"yield_stress": np.asarray(0.0, np.float32), "mu": np.asarray(576.0),
                                  "body.eta": np.asarray(0.0), "floor.friction": np.asarray(0.0)})
-    assert [n.split(",")[0] for n in notes] == ["yield_stress ended at 0 Pa", "body.eta ended at 0 Pa s"]
+    assert [n.split(":")[0] for n in notes] == ["yield_stress ended at 0 Pa", "body.eta ended at 0 Pa s"]
     assert "underflowed" in notes[0]
 
 
