@@ -156,7 +156,7 @@ def test_a_fitted_value_outside_its_range_is_named_and_not_called_converged():
     notes = outside_their_range({"yield_stress": np.asarray(0.0, np.float32), "mu": np.asarray(576.0),
                                  "body.eta": np.asarray(0.0), "floor.friction": np.asarray(0.0)})
     assert [n.split(":")[0] for n in notes] == ["yield_stress ended at 0 Pa", "body.eta ended at 0 Pa s"]
-    assert "underflowed" in notes[0]
+    assert "10^y underflows" in notes[0]
 
 
 def test_every_fit_reports_where_its_time_went(obs, tmp_path, capsys):
