@@ -198,7 +198,8 @@ def cmd_fit(args) -> int:
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
                        velocity_until=args.velocity_until, scan=scan, resolution=args.resolution,
-                       refine_velocity=REFINE_VELOCITY[args.refine_velocity])
+                       refine_velocity=REFINE_VELOCITY[args.refine_velocity],
+                       polish=None if args.polish == "auto" else ())
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
     payload = result.to_json()
     write_json(Path(args.out), payload)
@@ -359,6 +360,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="before fitting each log10 parameter, try its guess x 10^d for these d and start from the "
                         "best, e.g. -1,1,2,3 (silhouette losses have plateaus where LM stalls); auto (default): "
                         "-1,1,2,3 without per-particle tracks, none from them; none: no scan")
+    p.add_argument("--polish", choices=("auto", "none"), default="auto",
+                   help="where the last stage fitting the velocity stops without converging, try moving each "
+                        "velocity component by a few mm/s and solve again from a lower loss: auto (default: without "
+                        "per-particle tracks), none")
     p.add_argument("--resolution", action="store_true",
                    help="raise each std to the scale the loss resolves where it is rough (noise-free data, CPIC "
                         "contact): two loss evaluations per parameter and try")

@@ -120,6 +120,15 @@ REFINE_VELOCITY = {"auto": None, "yes": True, "no": False}
 #: (docs/benchmark_sysid.md, session 34).
 SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
 
+#: Moves of each velocity component tried where a stage that fits the velocity last stalls
+#: without per-particle tracks (:attr:`FitConfig.polish`), in units of ``dx / T``: the velocity
+#: error that shifts the body by one grid cell over the stage's observed time ``T``. On the sysid
+#: benchmark's viscoplastic bunny (``dx / T`` = 64 mm/s: moves of 1, 3 and 10 mm/s) the
+#: silhouette fit stalled with its x velocity 2.9 mm/s off, where a move of that one component
+#: lowered the loss that Levenberg–Marquardt's steps could not, and LM from there met every
+#: target (docs/benchmark_sysid.md, session 47).
+VELOCITY_POLISH = (0.015, 0.05, 0.15)
+
 
 class FitError(JaxmpmError, RuntimeError):
     """A fit could not start (e.g. the simulation is unstable even at small dt)."""
@@ -178,6 +187,14 @@ class FitConfig:
             scan. A fit whose scan moved its start and that does not converge is run again
             from the guess without the scan, and the lower loss of the last stage decides
             (a note says so; ``FitResult.timing["other_start"]`` has the other).
+        polish: velocity moves (units of ``dx / T``, see :data:`VELOCITY_POLISH`) tried, each
+            component in turn and both signs, where the last stage that fits a velocity stops
+            without converging: a rough silhouette loss can hold Levenberg–Marquardt in a
+            valley of the velocity that a move of a few mm/s leaves. When a move lowers the
+            stage loss, the stage is solved again from there (a note says so; the stage's record
+            has ``polish``). Costs a forward-only loss program and ``6 × D`` evaluations.
+            None (default): :data:`VELOCITY_POLISH` without per-particle tracks, none from
+            tracks of every particle; ``()``: none.
         free_fall_start: from silhouettes or untracked points, start the first velocity stage
             from the velocity the observed free fall gives (:func:`free_fall_velocity`) when
             its stage loss is lower than the guess's: the silhouette loss is far from
@@ -211,6 +228,7 @@ class FitConfig:
     uncertainty: bool = True
     resolution: bool = False
     scan: Sequence[float] | None = None
+    polish: Sequence[float] | None = None
     free_fall_start: bool = True
 
     def check(self) -> None:
@@ -229,6 +247,11 @@ class FitConfig:
         if self.scan is not None and (isinstance(self.scan, (str, bytes)) or not all(
                 isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) for d in self.scan)):
             raise JaxmpmError(f"scan must be a sequence of finite decade offsets, got {self.scan!r}")
+        if self.polish is not None and (isinstance(self.polish, (str, bytes)) or not all(
+                isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) and d > 0
+                for d in self.polish)):
+            raise JaxmpmError(f"polish must be a sequence of positive finite moves (units of dx / T), got "
+                              f"{self.polish!r}")
 
     def objective_options(self) -> dict:
         """The keyword arguments of :func:`jaxmpm.identify.build_objective` this configuration
@@ -560,6 +583,7 @@ def fit(
     std: dict[str, np.ndarray] = {}
     last_stage_of = _last_stage_of(plan)
     scan = (() if observation.tracks_particles else SCAN_DECADES) if c.scan is None else tuple(c.scan)
+    polish = (() if observation.tracks_particles else VELOCITY_POLISH) if c.polish is None else tuple(c.polish)
     scan_left = set() if not scan else {
         n for n in names if isinstance(transform_of(n), Log10) and np.ndim(initial[n]) == 0}
     total_iterations = 0
@@ -633,6 +657,35 @@ def fit(
                 continue
             break
         losses += outcome.losses
+        stage_losses, stage_timing = list(outcome.losses), dict(outcome.timing)
+        stage_polish = None
+        to_polish = [n for n in velocity_names if n in snames and last_stage_of[n] == si]
+        if polish and to_polish and not outcome.converged:
+            t_polish = time.perf_counter()
+            window = stage.until if stage.until is not None else float(np.asarray(observation.times)[-1])
+            unit = model.grid.dx / max(window, model.frame_dt)  # m/s that shift the body a cell over the window
+            y_polished, stage_polish = polish_velocity(stage_residuals, {n: y_all[n] for n in snames}, to_polish,
+                                                       [d * unit for d in polish])
+            stage_polish["seconds"] = time.perf_counter() - t_polish
+            if stage_polish["moved"]:
+                moved = ", ".join(f"{k} {d * 1e3:+.3g} mm/s" for k, d in stage_polish["moved"].items())
+                notes.append(f"stage {si + 1}: it stopped without converging; moving {moved} lowered its loss "
+                             f"{stage_polish['start_loss']:.4g} -> {stage_polish['best_loss']:.4g}: solved again "
+                             "from there")
+                say(notes[-1])
+                stopped = outcome
+                outcome = _solve(stage_method, objective, stage_residuals, y_polished, c, steps=steps,
+                                 seed=c.seed + si, progress=progress, offset=total_iterations)
+                total_iterations += outcome.iterations
+                outcome.iterations += stopped.iterations
+                losses += outcome.losses
+                stage_losses += outcome.losses
+                stage_timing = {k: stage_timing.get(k, 0.0) + outcome.timing.get(k, 0.0) if k != "step_s"
+                                else stage_timing.get(k, outcome.timing.get(k, 0.0))  # a median: the first solve's
+                                for k in {*stage_timing, *outcome.timing}}
+                for n in snames:
+                    y_all[n] = outcome.y[n]
+            stage_timing["polish_s"] = stage_polish["seconds"]
         record = {
             "label": stage.label,
             "names": snames,
@@ -640,16 +693,18 @@ def fit(
             "frames": objective.frames,
             "method": stage_method,
             "iterations": outcome.iterations,
-            "loss": [outcome.losses[0], min(outcome.losses)] if outcome.losses else [],
+            "loss": [stage_losses[0], min(stage_losses)] if stage_losses else [],
             "converged": bool(outcome.converged),
             "message": outcome.message,
             "seconds": time.perf_counter() - t_stage,
             "substeps": model.substeps,
             "terms": objective.terms,
-            "timing": dict(outcome.timing),
+            "timing": stage_timing,
         }
         if stage_scan is not None:
             record["scan"] = stage_scan[1]
+        if stage_polish is not None:
+            record["polish"] = stage_polish
         if stage_fall is not None:
             record["free_fall_start"] = stage_fall
         records.append(record)
@@ -741,6 +796,7 @@ def fit(
         "solver_s": sum(t.get("start_s", 0.0) + t.get("steps_s", 0.0) + t.get("checks_s", 0.0) for t in stage_timing),
         "compile_s": sum(t.get("compile_s", 0.0) for t in stage_timing),
         "uncertainty_s": sum(t.get("uncertainty_s", 0.0) for t in stage_timing),
+        "polish_s": sum(t.get("polish_s", 0.0) for t in stage_timing),
     }
     result = FitResult(
         params=final_params,
@@ -866,11 +922,43 @@ def _solve(method: str, objective: Objective, residuals: StageResiduals, y0: dic
                 patience=c.patience, grad=c.grad, seed=seed, progress=progress, offset=offset, names=list(y0))
 
 
+def coordinate_search(loss: Callable[[dict], float], y0: dict, coordinates: Sequence[tuple[str, int | None]],
+                      offsets: Sequence[float]):
+    """A greedy look along coordinates: each coordinate ``(name, index)`` of ``y0`` (``index``
+    None for a scalar variable, else a component of a vector one) in turn is moved to its
+    value in ``y0`` plus every offset, the others held at the best point so far, and kept where
+    ``loss`` is lowest (a NaN or infinite loss never wins).
+
+    Returns:
+        ``(y, record)``: the best point and ``{"points", "start_loss", "best_loss", "moved":
+        {label: offset}}`` (labels ``name`` or ``name[index]``).
+    """
+    def value(y):
+        v = float(loss(y))
+        return v if np.isfinite(v) else np.inf
+
+    best = dict(y0)
+    start = best_loss = value(best)
+    moved, points = {}, 1
+    for name, index in coordinates:
+        for d in offsets:
+            if d == 0:
+                continue
+            moved_to = y0[name] + d if index is None else best[name].at[index].set(y0[name][index] + d)
+            trial = {**best, name: moved_to}
+            v = value(trial)
+            points += 1
+            if v < best_loss:
+                best, best_loss = trial, v
+                moved[name if index is None else f"{name}[{index}]"] = float(d)
+    return best, {"points": points, "start_loss": start, "best_loss": best_loss, "moved": moved}
+
+
 def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str], offsets: Sequence[float]):
     """A coarse, coordinate-wise look at the loss ``sum(residuals(y)**2)`` before a stage:
     each of ``names`` (scalar log10 variables of ``y0``) in turn is moved to
     ``y0[name] + offset`` for every offset, the others held at the best point so far, and
-    kept where the loss is lowest.
+    kept where the loss is lowest (:func:`coordinate_search`).
 
     Unhealthy points (NaN loss) are skipped. Costs ``len(names) × len(offsets)`` evaluations
     of the stage's residual-and-Jacobian program (the one its solver uses: nothing new is
@@ -881,25 +969,24 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
         "start_loss", "best_loss", "moved": {name: offset}}`` for fit.json and the notes.
     """
     loss_of = loss_function(residuals, y0)
-    flatten = lambda y: jax.flatten_util.ravel_pytree(y)[0]  # noqa: E731
+    flat = lambda y: jax.flatten_util.ravel_pytree(y)[0]  # noqa: E731
+    return coordinate_search(lambda y: loss_of(flat(y)), y0, [(n, None) for n in names], offsets)
 
-    def loss(y):
-        value = float(loss_of(flatten(y)))
-        return value if np.isfinite(value) else np.inf
 
-    best = dict(y0)
-    start = best_loss = loss(best)
-    moved, points = {}, 1
-    for n in names:
-        for d in offsets:
-            if d == 0:
-                continue
-            trial = {**best, n: y0[n] + d}
-            value = loss(trial)
-            points += 1
-            if value < best_loss:
-                best, best_loss, moved[n] = trial, value, float(d)
-    return best, {"points": points, "start_loss": start, "best_loss": best_loss, "moved": moved}
+@eqx.filter_jit
+def _stage_loss(residuals: StageResiduals, y: dict):
+    """``sum(residuals(y)**2)``, forward only: one compilation per stage structure."""
+    return jnp.sum(residuals(y) ** 2)
+
+
+def polish_velocity(residuals: StageResiduals, y: dict, names: Sequence[str], moves: Sequence[float]):
+    """:func:`coordinate_search` over every component of the velocity variables ``names`` of
+    ``y`` (m/s) by ``± moves`` (m/s), on the stage loss ``sum(residuals(y)**2)`` (a forward-only
+    program of its own: an evaluation of the residual-and-Jacobian program would cost the
+    stage's JVPs too). Returns ``(y, record)`` as :func:`coordinate_search`."""
+    offsets = [sign * m for m in moves for sign in (-1.0, 1.0)]
+    coordinates = [(n, i) for n in names for i in range(int(np.size(y[n])))]
+    return coordinate_search(lambda p: _stage_loss(residuals, p), y, coordinates, offsets)
 
 
 def free_fall_velocity(model, params: Params, observation: Observation) -> np.ndarray | None:

@@ -51,7 +51,8 @@ def format_timing(result) -> str:
     t = result.timing
     lines = [f"time: {t['total_s']:.1f} s in all; planning (contact detection) {t['planning_s']:.1f} s, "
              f"solvers {t['solver_s']:.1f} s (compilation ~{t['compile_s']:.1f} s), "
-             f"uncertainty {t['uncertainty_s']:.1f} s"]
+             f"uncertainty {t['uncertainty_s']:.1f} s"
+             + (f", velocity polish {t['polish_s']:.1f} s" if t.get("polish_s") else "")]
     rows = [("stage", "iterations", "start", "median step", "all steps", "checks", "rejected", "std")]
     for k, st in enumerate(result.stages, 1):
         g = st.get("timing", {})

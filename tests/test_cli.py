@@ -336,10 +336,12 @@ def test_demo_video_goes_from_rendered_views_to_parameters(tmp_path, capsys):
     ("--refine-velocity", None, None), ("--refine-velocity", "auto", None), ("--refine-velocity", "yes", True),
     ("--refine-velocity", "no", False),
     ("--scan", None, None), ("--scan", "auto", None), ("--scan", "none", ()), ("--scan", "-1,2", (-1.0, 2.0)),
+    ("--polish", None, None), ("--polish", "auto", None), ("--polish", "none", ()),
 ])
 def test_fit_choice_reaches_the_fit(simulated, monkeypatch, flag, choice, value):
     """``jaxmpm fit --refine-velocity auto|yes|no`` is FitConfig.refine_velocity None|True|False;
-    ``--scan auto|none|DECADES`` is FitConfig.scan None|()|the offsets."""
+    ``--scan auto|none|DECADES`` is FitConfig.scan None|()|the offsets; ``--polish auto|none`` is
+    FitConfig.polish None|()."""
     import importlib
 
     folder, scene, obs, _ = simulated

@@ -95,6 +95,69 @@ def test_scan_start_keeps_the_lowest_loss_and_skips_unhealthy_points():
     assert float(y["mu"]) == pytest.approx(2.0) and rec["moved"] == {"mu": -2.0} and rec["start_loss"] == np.inf
 
 
+def test_coordinate_search_moves_one_component_of_a_vector_at_a_time():
+    from jaxmpm.fit import coordinate_search
+
+    def loss(y):  # minimum at v = (0.3, -1.0), flat in mu; NaN where v[1] > 0
+        v = y["v"]
+        return jnp.where(v[1] > 0, jnp.nan, (v[0] - 0.3) ** 2 + 4 * (v[1] + 1.0) ** 2 + 0 * y["mu"])
+
+    y0 = {"v": jnp.asarray([0.0, -1.2]), "mu": jnp.asarray(2.0)}
+    y, rec = coordinate_search(loss, y0, [("v", 0), ("v", 1)], (-0.3, 0.3, 1.5))
+    np.testing.assert_allclose(np.asarray(y["v"]), [0.3, -1.2 + 0.3], atol=1e-6)  # +1.5 on v[1]: NaN, not taken
+    assert rec["moved"] == {"v[0]": 0.3, "v[1]": 0.3} and rec["points"] == 7 and float(y["mu"]) == 2.0
+    assert rec["best_loss"] == pytest.approx(4 * 0.1**2, rel=1e-4) and rec["start_loss"] == pytest.approx(0.09 + 0.16)
+
+
+def test_a_velocity_stage_that_stops_short_is_polished_and_solved_again(monkeypatch):
+    """Where the last stage fitting the velocity stops without converging and the data track no
+    particle, each velocity component is moved by ± VELOCITY_POLISH × dx / T and the stage is
+    solved again from a lower loss. Here the solver's first run is made to stop at its start,
+    the velocity 0.05 dx / T off in x: the polish finds exactly that move, and the second run
+    converges to the truth. Not from tracks of every particle, nor with polish=()."""
+    import importlib
+
+    from jaxmpm.fit import VELOCITY_POLISH
+    from jaxmpm.identify.solvers import SolverOutcome
+
+    fit_module = importlib.import_module("jaxmpm.fit")
+    truth, _ = MATERIAL_CASES["newtonian"]
+    true_scene = load_scene(_spec(truth, "newtonian"))
+    traj = simulate(true_scene.model, true_scene.params)
+    times = np.asarray(traj.times)
+    unit = 0.04 / float(times[-1])  # dx / T
+    off = {**_spec(truth, "newtonian")}
+    off["bodies"] = [{**off["bodies"][0], "velocity": [0.5 + VELOCITY_POLISH[1] * unit, -2.0]}]
+    start = load_scene(off)
+    real_solve, calls = fit_module._solve, []
+
+    def stop_at_start_once(method, objective, residuals, y0, c, **kw):
+        calls.append(y0)
+        if len(calls) == 1:
+            return SolverOutcome(y0, [float(jnp.sum(residuals(y0) ** 2))], 0, False, "stopped (test)")
+        return real_solve(method, objective, residuals, y0, c, **kw)
+
+    monkeypatch.setattr(fit_module, "_solve", stop_at_start_once)
+    untracked = Observation(times=times, positions=np.asarray(traj.x))
+    config = FitConfig(stages=None, uncertainty=False)
+    result = fit(start.model, start.params, untracked, ["velocity"], config)
+    polish = result.stages[0]["polish"]
+    assert list(polish["moved"]) == ["velocity[0]"]
+    assert polish["moved"]["velocity[0]"] == pytest.approx(-VELOCITY_POLISH[1] * unit, rel=1e-6)
+    assert polish["points"] == 1 + 2 * len(VELOCITY_POLISH) * 2 and polish["best_loss"] < 1e-3 * polish["start_loss"]
+    assert len(calls) == 2 and any("solved again from there" in n for n in result.notes)
+    np.testing.assert_allclose(np.asarray(result.values["velocity"]), [0.5, -2.0], atol=1e-4)
+    assert result.converged and result.timing["polish_s"] > 0
+
+    for obs, kw in ((Observation(times=times, positions=np.asarray(traj.x), point_ids="particles"), {}),
+                    (untracked, {"polish": ()})):
+        calls.clear()
+        result = fit(start.model, start.params, obs, ["velocity"], FitConfig(stages=None, uncertainty=False, **kw))
+        assert "polish" not in result.stages[0] and len(calls) == 1 and not result.converged
+    with pytest.raises(JaxmpmError, match="polish must be"):
+        fit(start.model, start.params, untracked, ["velocity"], FitConfig(polish=(0.0,)))
+
+
 def test_fit_with_a_scan_starts_from_the_scanned_point_and_records_it():
     """From a guess 2 decades off on a plateau-free track loss the scan must move mu toward the
     truth before LM starts, and fit.json's stage record says so."""
