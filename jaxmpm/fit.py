@@ -685,6 +685,10 @@ def fit(
                                 for k in {*stage_timing, *outcome.timing}}
                 for n in snames:
                     y_all[n] = outcome.y[n]
+            else:
+                notes.append(f"stage {si + 1}: it stopped without converging; no velocity move of "
+                             f"{', '.join(f'{d * unit * 1e3:.3g}' for d in polish)} mm/s lowered its loss")
+                say(notes[-1])
             stage_timing["polish_s"] = stage_polish["seconds"]
         record = {
             "label": stage.label,

@@ -154,6 +154,11 @@ def test_a_velocity_stage_that_stops_short_is_polished_and_solved_again(monkeypa
         calls.clear()
         result = fit(start.model, start.params, obs, ["velocity"], FitConfig(stages=None, uncertainty=False, **kw))
         assert "polish" not in result.stages[0] and len(calls) == 1 and not result.converged
+    # a polish that finds no lower loss says so and leaves the stage as it stopped
+    calls.clear()
+    result = fit(true_scene.model, true_scene.params, untracked, ["velocity"], config)
+    assert result.stages[0]["polish"]["moved"] == {} and len(calls) == 1 and not result.converged
+    assert any("no velocity move of" in n for n in result.notes)
     with pytest.raises(JaxmpmError, match="polish must be"):
         fit(start.model, start.params, untracked, ["velocity"], FitConfig(polish=(0.0,)))
 
