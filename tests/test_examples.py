@@ -86,12 +86,17 @@ def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path
     details = {"causes": ["collider_friction"],
                "extended_parameters": {"collider_friction.floor": 0.5, "collider_friction.box": 0.0}}
     (tmp_path / "report.json").write_text(json.dumps({"details": details}))
-    res = module.summary(tmp_path, dx=0.2, t_end=0.1)
-    assert (tmp_path / "gauges.png").stat().st_size > 0
-    assert json.loads((tmp_path / "summary.json").read_text()) == res
-    assert set(res["gauges"]) == set(module.GAUGES) and res["causes"] == ["collider_friction"]
+    res = module.summary(tmp_path, dx=0.2, t_end=0.1, tag="_check")
+    assert (tmp_path / "gauges_check.png").stat().st_size > 0
+    assert json.loads((tmp_path / "summary_check.json").read_text()) == res
+    assert set(res["gauges"]) == set(module.GAUGES) and res["causes"] == ["collider_friction"] and res["dx"] == 0.2
     for row in res["gauges"].values():
         assert np.isfinite([row["rms_base_m"], row["rms_extended_m"]]).all()
+    # the held-out error over all gauges is the root of the mean of the per-gauge mean squares
+    # (every gauge has the same held-out times)
+    for kind in ("base", "extended"):
+        per_gauge = [row[f"rms_{kind}_heldout_window_m"] ** 2 for row in res["gauges"].values()]
+        assert res["rms_all_heldout_window_m"][kind] == pytest.approx(np.sqrt(np.mean(per_gauge)), rel=1e-6)
 
 
 def test_dam_break_2d_summary_replots_the_three_columns(tmp_path):
