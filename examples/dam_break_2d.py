@@ -68,7 +68,7 @@ def scene_spec(name: str, cells: int = 8, ppc: int = 4, z_max: float | None = No
     z_max = float(np.max(Z)) if z_max is None else z_max
     dx = a / cells
     u_max = 2.0 * math.sqrt(G * 2 * a)  # Ritter front speed of a column of height 2a
-    c = 8.0 * u_max  # speed of sound: weakly compressible (Mach^2 < 2 %)
+    c = 8.0 * u_max  # sqrt(kappa / rho); the sound speed is sqrt(7 kappa / rho) = 21 u_max (pressure kappa (J^-7 - 1))
     kappa = 1000.0 * c**2
     dt = 0.3 * dx / (c + u_max)
     frame_dt = 0.01 * math.sqrt(a / 0.05715)  # ~ 0.01 s for the large column

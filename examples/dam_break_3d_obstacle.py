@@ -52,7 +52,7 @@ def load_gauges(t_end: float = 1.2, every: int = 20):
 
 def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2e-3, half: bool = True) -> dict:
     u = 2.0 * math.sqrt(G * H)  # Ritter front speed
-    c = 6.0 * u
+    c = 6.0 * u  # sqrt(kappa / rho); the sound speed is sqrt(7 kappa / rho) = 16 u (pressure kappa (J^-7 - 1))
     dt = 0.3 * dx / (c + u)
     frame_dt = 0.02
     width = 0.5 if half else 1.0
@@ -95,11 +95,14 @@ def observation(spec: dict, t_end: float):
                        scene=json.dumps(spec))
 
 
-def sequence(dx: float, t_end: float):
+def sequence(dx: float, t_end: float, substeps: int | None = None):
+    """The experiment as a ``discover`` sequence; ``substeps`` per frame overrides the scene's rule."""
     from jaxmpm.discover import Sequence
     from jaxmpm.scene import load_scene
 
     spec = scene_spec(dx, t_end)
+    if substeps:
+        spec["substeps"] = int(substeps)
     sc = load_scene(spec)
     return Sequence(sc.model, sc.params, observation(spec, t_end), name="spheric_test2", probes=gauge_probes(dx))
 
@@ -120,7 +123,6 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     import jax.numpy as jnp
 
     from jaxmpm import extensions as X
-    from jaxmpm import simulate
 
     out_dir = Path(out_dir)
     det = json.loads((out_dir / "report.json").read_text())["details"]
@@ -144,9 +146,9 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     if causes:
         ext = [e for e in causes if e != "time_offset"]
         runs["extended"] = (X.enable(m, seq.params, ext, {e: values.get(e, {}) for e in ext}) if ext else seq.params, t0)
-    sim = {}
+    sim, res_substeps, res_health = {}, {}, {}
     for kind, (params, shift) in runs.items():
-        x = np.asarray(simulate(m, params, checkpoint=None).x)
+        x, res_substeps[kind], res_health[kind] = healthy_rollout(m, params)
         vals = {}
         for g in GAUGES:
             fn = probes[f"gauge_{g}"]
@@ -162,7 +164,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
         return float(t[i[0]]) if len(i) else None
 
     res = {"dx": dx, "t_end": t_end, "wet_m": wet, "causes": causes, "t0": t0, "gauges": {},
-           "rms_all_heldout_window_m": {}}
+           "rms_all_heldout_window_m": {}, "substeps": res_substeps, "unstable_at_fewer_substeps": res_health}
     fig, axes = plt.subplots(2, 2, figsize=(9, 5.6), sharex=True)
     held = float(np.quantile(np.unique(load_gauges(t_end)[0]), 0.7))
     late = t_obs >= held
@@ -189,12 +191,33 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     for ax in axes[1]:
         ax.set_xlabel("time (s); shaded: held out")
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle(f"dx = {dx} m ({m.num_particles} particles)", fontsize=9)
+    fig.suptitle(f"dx = {dx} m ({m.num_particles} particles); substeps per frame: "
+                 + ", ".join(f"{kind} {n}" for kind, n in res_substeps.items()), fontsize=9)
     fig.tight_layout()
     fig.savefig(out_dir / f"gauges{tag}.png", dpi=110)
     plt.close(fig)
     (out_dir / f"summary{tag}.json").write_text(json.dumps(res, indent=1))
     return res
+
+
+def healthy_rollout(model, params, halvings: int = 2):
+    """Positions ``(T, N, 3)`` of a rollout that :func:`jaxmpm.step.health_message` passes, with
+    dt halved (substeps doubled) after an unhealthy one, at most ``halvings`` times, as
+    :func:`jaxmpm.fit` does. Returns ``(x, substeps used, the health messages of the runs
+    discarded)``; raises when the last one is unhealthy too."""
+    from jaxmpm import simulate
+    from jaxmpm.step import health_message
+
+    messages = []
+    for _ in range(halvings + 1):
+        traj = simulate(model, params, checkpoint=None)
+        message = health_message(model, traj)
+        if message is None:
+            return np.asarray(traj.x), model.substeps, messages
+        print(f"{model.substeps} substeps per frame: {message}", file=sys.stderr)
+        messages.append(f"{model.substeps} substeps: {message}")
+        model = model.with_substeps(2 * model.substeps)
+    raise RuntimeError(f"unstable after {halvings} halvings of dt: {messages[-1]}")
 
 
 class _State:
@@ -217,6 +240,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit", default="", help="base parameters to fit, comma-separated (default: none, the water's own "
                     "viscosity mu = 2e-3 Pa s in PAC-NeRF's convention; 'mu' fits it as part of the base model)")
     ap.add_argument("--top", type=int, default=2, help="best-scoring extensions refitted")
+    ap.add_argument("--substeps", type=int, default=None,
+                    help="substeps per frame for discover (default: dt = 0.3 dx / 7u; at dx = 0.05 the free-slip "
+                         "base model blows up at that dt and needs 88)")
     ap.add_argument("--summary-only", action="store_true",
                     help="only redo gauges.png and summary.json from an existing report.json")
     ap.add_argument("--resolution-check", action="store_true",
@@ -232,7 +258,7 @@ def main(argv=None) -> int:
     from jaxmpm.discover import discover
     from jaxmpm.discover_report import write_report
 
-    seq = sequence(args.dx, args.t_end)
+    seq = sequence(args.dx, args.t_end, args.substeps)
     m = seq.model
     print(f"{m.num_particles} particles, grid {m.grid.shape}, {m.frames} frames x {m.substeps} substeps", file=sys.stderr)
     start = time.perf_counter()

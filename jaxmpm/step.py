@@ -587,6 +587,11 @@ def unhealthy(traj: Trajectory, cfl_limit: float = 1.0, energy_limit: float = EN
     return _frame_unhealthy(traj.cfl, traj.nan, traj.energy_gain, traj.wave_cfl, cfl_limit, energy_limit)
 
 
+#: A CFL number above this many times the limit is a blow-up, not a flow too fast for dt:
+#: ``health_message`` then asks for half the dt instead of scaling dt by the speed.
+EXPLOSION_CFL = 10.0
+
+
 def health_message(
     model: Model, traj: Trajectory, cfl_limit: float = 1.0, energy_limit: float = ENERGY_GAIN_LIMIT
 ) -> str | None:
@@ -613,7 +618,10 @@ def _unstable_message(
         why, factor = "NaN values appeared", 2.0
     elif not cfl <= cfl_limit:
         why = f"the CFL number max|v| dt/dx reached {cfl:.3g} (> {cfl_limit:g})"
-        factor = 2.0 * cfl / cfl_limit if math.isfinite(cfl) else 2.0
+        # a flow too fast for dt shows its speed; a blow-up's speed says nothing of the dt it needs
+        blew_up = not cfl <= EXPLOSION_CFL * cfl_limit
+        factor = 2.0 if blew_up else 2.0 * cfl / cfl_limit
+        why += ": the run blew up" if blew_up else ""
     else:
         why = (f"kinetic plus potential energy grew {gain:.3g} units (about the energy of lifting the body by "
                f"one cell) above its initial value (> {energy_limit:g}: energy was created)")

@@ -99,6 +99,20 @@ def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path
         assert res["rms_all_heldout_window_m"][kind] == pytest.approx(np.sqrt(np.mean(per_gauge)), rel=1e-6)
 
 
+def test_dam_break_3d_obstacle_rollouts_halve_dt_until_healthy():
+    """The summary's rollouts (and so the dx/2 resolution check, whose free-slip base model
+    blows up where the front hits the end wall at the scene's dt) halve dt after an unhealthy
+    run, say so, and give up with an error rather than read gauges off an exploded run."""
+    module = _script("dam_break_3d_obstacle")
+    seq = module.sequence(dx=0.2, t_end=0.04)
+    half = seq.model.with_substeps(seq.model.substeps // 2)  # a stress wave crosses ~1.4 cells a step
+    x, substeps, messages = module.healthy_rollout(half, seq.params)
+    assert substeps == 2 * half.substeps and len(messages) == 1 and "unstable" in messages[0]
+    assert x.shape == (seq.model.frames, seq.model.num_particles, 3) and np.isfinite(x).all()
+    with pytest.raises(RuntimeError, match="unstable after 0 halvings"):
+        module.healthy_rollout(half, seq.params, halvings=0)
+
+
 def test_dam_break_2d_summary_replots_the_three_columns(tmp_path):
     """The 2D case study's ``--summary-only``: base and extended fronts of every column."""
     module = _script("dam_break_2d")
