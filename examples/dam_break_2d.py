@@ -123,7 +123,7 @@ PHYSICAL = ("collider_friction", "restitution", "drag", "damping", "rate_depende
 def resolution_check(result, cells: int) -> dict:
     """The fitted base model at twice the resolution (dx/2, dt/2): how far the predicted fronts
     move, against the base model's error (the dt/2 check alone does not refine dx)."""
-    from jaxmpm import simulate
+    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     mu = float(result.base_values.get("mu", WATER_MU))
@@ -133,7 +133,7 @@ def resolution_check(result, cells: int) -> dict:
         fronts = []
         for c in (cells, 2 * cells):
             sc = load_scene(scene_spec(n, c, mu=mu))
-            x = np.asarray(simulate(sc.model, sc.params, checkpoint=None).x)
+            x = np.asarray(simulate_healthy(sc.model, sc.params)[0].x)
             h = float(np.max(np.asarray(sc.model.bodies[0].vol0))) ** 0.5
             tt = np.arange(sc.model.frames) * sc.model.frame_dt
             fronts.append(np.interp(t, tt, x[:, :, 0].max(axis=1) + 0.5 * h))
@@ -166,7 +166,7 @@ def summary(out_dir, cells: int) -> dict:
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
-    from jaxmpm import simulate
+    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -193,7 +193,7 @@ def summary(out_dir, cells: int) -> dict:
                     continue
                 ext = [e for e in causes if e != "time_offset"]
                 params = X.enable(m, params, ext, {e: values.get(e, {}) for e in ext}) if ext else params
-            x = np.asarray(simulate(m, params, checkpoint=None).x)
+            x = np.asarray(simulate_healthy(m, params)[0].x)
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             shift = t0 if kind == "extended" else 0.0
             curves[kind] = (tt + shift, front)
@@ -239,7 +239,7 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
-    from jaxmpm import simulate
+    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -255,7 +255,7 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
         err = np.zeros((len(frictions), len(offsets)))
         for i, mu_b in enumerate(frictions):
             params = X.enable(m, sc.params, ["collider_friction"], {"collider_friction": {"floor": mu_b}})
-            x = np.asarray(simulate(m, params, checkpoint=None).x)
+            x = np.asarray(simulate_healthy(m, params)[0].x)
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             for j, t0 in enumerate(offsets):
                 err[i, j] = np.sqrt(np.mean((np.interp(t - t0, tt, front, left=a) - xf) ** 2))

@@ -123,6 +123,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     import jax.numpy as jnp
 
     from jaxmpm import extensions as X
+    from jaxmpm import simulate_healthy
 
     out_dir = Path(out_dir)
     det = json.loads((out_dir / "report.json").read_text())["details"]
@@ -148,7 +149,10 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
         runs["extended"] = (X.enable(m, seq.params, ext, {e: values.get(e, {}) for e in ext}) if ext else seq.params, t0)
     sim, res_substeps, res_health = {}, {}, {}
     for kind, (params, shift) in runs.items():
-        x, res_substeps[kind], res_health[kind] = healthy_rollout(m, params)
+        traj, ran, res_health[kind] = simulate_healthy(m, params)
+        for why in res_health[kind]:
+            print(why, file=sys.stderr)
+        x, res_substeps[kind] = np.asarray(traj.x), ran.substeps
         vals = {}
         for g in GAUGES:
             fn = probes[f"gauge_{g}"]
@@ -198,26 +202,6 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     plt.close(fig)
     (out_dir / f"summary{tag}.json").write_text(json.dumps(res, indent=1))
     return res
-
-
-def healthy_rollout(model, params, halvings: int = 2):
-    """Positions ``(T, N, 3)`` of a rollout that :func:`jaxmpm.step.health_message` passes, with
-    dt halved (substeps doubled) after an unhealthy one, at most ``halvings`` times, as
-    :func:`jaxmpm.fit` does. Returns ``(x, substeps used, the health messages of the runs
-    discarded)``; raises when the last one is unhealthy too."""
-    from jaxmpm import simulate
-    from jaxmpm.step import health_message
-
-    messages = []
-    for _ in range(halvings + 1):
-        traj = simulate(model, params, checkpoint=None)
-        message = health_message(model, traj)
-        if message is None:
-            return np.asarray(traj.x), model.substeps, messages
-        print(f"{model.substeps} substeps per frame: {message}", file=sys.stderr)
-        messages.append(f"{model.substeps} substeps: {message}")
-        model = model.with_substeps(2 * model.substeps)
-    raise RuntimeError(f"unstable after {halvings} halvings of dt: {messages[-1]}")
 
 
 class _State:

@@ -62,6 +62,7 @@ from .state import make_state as make_state
 from .step import Trajectory as Trajectory
 from .step import run_frames as run_frames
 from .step import simulate as simulate
+from .step import simulate_healthy as simulate_healthy
 from .step import stable_substeps as stable_substeps
 from .step import step as step
 from .sweep import sweep as sweep

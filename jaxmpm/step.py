@@ -62,6 +62,7 @@ __all__ = [
     "advect",
     "step",
     "simulate",
+    "simulate_healthy",
     "run_frames",
     "Trajectory",
     "unhealthy",
@@ -752,6 +753,38 @@ def _frame_function(model: Model, params: Params, observe, checkpoint, base: _He
     if checkpoint in ("frame", "nested"):
         frame = jax.checkpoint(frame)
     return frame
+
+
+def simulate_healthy(
+    model: Model,
+    params: Params,
+    *,
+    halvings: int = 2,
+    frames: int | None = None,
+    checkpoint: str | None = None,
+) -> tuple[Trajectory, Model, list[str]]:
+    """:func:`simulate`, repeated with dt halved (substeps doubled) while :func:`health_message`
+    finds the rollout unhealthy, at most ``halvings`` times: an evaluation rollout that must
+    not be read off an exploded run (a gauge, a mask, a plot).
+
+    Returns:
+        ``(trajectory, the model that ran it (its substeps), one line per rollout discarded)``.
+
+    Raises:
+        SimulationError: the last rollout is unhealthy too (its message).
+    """
+    from .errors import SimulationError
+
+    discarded: list[str] = []
+    while True:
+        traj = simulate(model, params, checkpoint=checkpoint, frames=frames)
+        why = health_message(model, traj)
+        if why is None:
+            return traj, model, discarded
+        if len(discarded) == halvings:
+            raise SimulationError(f"{why} (after {halvings} halvings of dt)" if halvings else why)
+        discarded.append(f"{model.substeps} substeps per frame: {why}")
+        model = model.with_substeps(2 * model.substeps)
 
 
 @full_precision

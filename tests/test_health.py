@@ -13,7 +13,7 @@ from scenes import block_spec
 from jaxmpm.cli import main
 from jaxmpm.errors import SimulationError
 from jaxmpm.scene import load_scene
-from jaxmpm.step import (ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, stable_substeps, unhealthy,
+from jaxmpm.step import (ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, simulate_healthy, stable_substeps, unhealthy,
                          wave_cfl)
 
 #: Issue 14's scene: sand dropped at 1 m/s onto a box 2 cells thick with 40 substeps per
@@ -67,6 +67,21 @@ def test_too_large_dt_stops_before_the_first_frame_with_a_stable_dt(tmp_path, co
     # the dt it suggests (80 substeps) is stable: wave CFL 0.64
     fine = load_scene(issue_scene(tmp_path, collider, substeps=80))
     assert float(wave_cfl(fine.model, fine.params)) < 0.7
+
+
+def test_simulate_healthy_halves_dt_until_the_rollout_passes_and_says_so(tmp_path):
+    """An evaluation rollout (a gauge, a mask) is never read off an unhealthy run: at 40
+    substeps the issue scene's wave CFL is 1.27, at 80 it is healthy; with no halving left
+    the health message is raised."""
+    scene = load_scene(issue_scene(tmp_path, "plane"))
+    traj, ran, discarded = simulate_healthy(scene.model, scene.params, frames=3)
+    assert ran.substeps == 80 and health_message(ran, traj) is None and traj.x.shape[0] == 3
+    assert len(discarded) == 1 and discarded[0].startswith("40 substeps per frame: the simulation became unstable")
+    with pytest.raises(SimulationError, match="stress wave"):
+        simulate_healthy(scene.model, scene.params, frames=3, halvings=0)
+    fine = scene.model.with_substeps(80)
+    traj, ran, discarded = simulate_healthy(fine, scene.params, frames=3)
+    assert ran is fine and discarded == []
 
 
 def _analytic_floor(material: dict, dx: float, frame_dt: float) -> int:

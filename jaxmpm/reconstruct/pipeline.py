@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import ObservationError, SimulationError
+from ..errors import ObservationError
 from ..fit_report import format_value
 from ..identify.residuals import frames_needed, observation_cameras
 from ..render import tile_views
@@ -455,27 +455,21 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
     (:data:`RENDERER`, the observation's cameras; ``substeps`` per frame, default the scene's).
 
     The rollout is :func:`jaxmpm.simulate`'s without checkpoints (the compilation the fit's
-    contact detection made). An unhealthy one (:func:`jaxmpm.step.health_message`) is
-    repeated with dt halved, up to :data:`EVALUATION_HALVINGS` times, and a line saying so is appended to ``notes``: a
+    contact detection made). An unhealthy one is repeated with dt halved, up to
+    :data:`EVALUATION_HALVINGS` times (:func:`jaxmpm.step.simulate_healthy`), and a line saying
+    so is appended to ``notes``: a
     fit's health checks ran at points a float32 round trip away from its result, and a rollout
     near an instability can fall either side (measured: a Newtonian fit on jittered masks whose
     result, re-simulated, reached CFL 1.16 in the last frame)."""
     from ..render import render_views
-    from ..step import health_message, simulate
+    from ..step import simulate_healthy
 
     model = scene.model if substeps is None else scene.model.with_substeps(int(substeps))
     frames = frames_needed(model, np.asarray(observation.times, float))
-    for halvings in range(EVALUATION_HALVINGS + 1):
-        traj = simulate(model, params, checkpoint=None, frames=frames)
-        why = health_message(model, traj)
-        if why is None:
-            break
-        if halvings == EVALUATION_HALVINGS:
-            raise SimulationError(why)
-        if notes is not None:
-            notes.append(f"the evaluation rollout at {model.substeps} substeps per frame was unhealthy ({why}); "
-                         f"evaluated at {2 * model.substeps}")
-        model = model.with_substeps(2 * model.substeps)
+    traj, model, discarded = simulate_healthy(model, params, halvings=EVALUATION_HALVINGS, frames=frames)
+    if notes is not None and discarded:
+        notes.append(f"the evaluation rollout was unhealthy at {' and at '.join(discarded)}; evaluated at "
+                     f"{model.substeps} substeps per frame")
     idx = np.round(np.asarray(observation.times) / model.frame_dt).astype(int)
     x = np.asarray(traj.x)[idx]
     spacing = float(np.cbrt(np.asarray(model.bodies[0].vol0)[0]))
