@@ -457,10 +457,10 @@ def simulated_masks(scene, params, observation, substeps: int | None = None, *,
     The rollout is :func:`jaxmpm.simulate`'s without checkpoints (the compilation the fit's
     contact detection made). An unhealthy one is repeated with dt halved, up to
     :data:`EVALUATION_HALVINGS` times (:func:`jaxmpm.step.simulate_healthy`), and a line saying
-    so is appended to ``notes``: a
-    fit's health checks ran at points a float32 round trip away from its result, and a rollout
-    near an instability can fall either side (measured: a Newtonian fit on jittered masks whose
-    result, re-simulated, reached CFL 1.16 in the last frame)."""
+    so is appended to ``notes``: a fit's health checks ran at points a float32 round trip away
+    from its result, and a rollout near an instability can fall either side (measured: a
+    Newtonian fit on jittered masks whose result, re-simulated, reached CFL 1.16 in the last
+    frame)."""
     from ..render import render_views
     from ..step import simulate_healthy
 
