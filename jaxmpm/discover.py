@@ -54,7 +54,7 @@ from .identify.solvers import levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
 from .observe import Observation
-from .step import simulate, unhealthy
+from .step import health_message, simulate, unhealthy
 
 __all__ = [
     "Sequence",
@@ -454,6 +454,17 @@ class _Problem:
             self.costs.call(("rollout", i, substeps_factor, active), seconds)
         return out
 
+    def health(self, theta) -> str | None:
+        """Why the first unhealthy sequence's rollout at ``theta`` is unhealthy
+        (:func:`jaxmpm.step.health_message`: the frame, the reason and a dt), or None."""
+        active = self.active(theta)
+        for i, sd in enumerate(self.seqs):
+            p = self.unpack(jnp.asarray(theta, _F()), i, active)
+            why = health_message(sd.model, simulate(sd.model, p, checkpoint=None, frames=sd.frames))
+            if why is not None:
+                return f"sequence {sd.seq.name!r}: {why}" if len(self.seqs) > 1 else why
+        return None
+
     #: how many recent residual evaluations are remembered (the workflow asks again for points
     #: its solver has just evaluated: a fit's estimate, a refit's start)
     REMEMBERED = 4
@@ -672,7 +683,8 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
     r = problem.residuals(theta)
     loss = float(np.sum(np.where(w > 0, w * r, 0.0) ** 2))  # held-out entries may be NaN (an unstable forecast)
     if not np.isfinite(loss):
-        raise JaxmpmError("the simulation is unstable (NaN or CFL > 1) at the starting parameters; "
+        why = problem.health(theta) or "the residuals are NaN"
+        raise JaxmpmError(f"the simulation is unstable at the starting parameters ({why}); "
                           "use more substeps or a better initial guess")
     if jac is not None:  # the solver's last Jacobian, if it was taken here (its residuals are these)
         r_solver, J_solver = jac

@@ -330,6 +330,19 @@ def test_discover_rejects_bad_inputs():
     assert jnp.asarray(scene.params["gravity"]).dtype == jnp.float32
 
 
+def test_an_unstable_base_model_is_refused_with_the_frame_and_a_dt():
+    """A base model whose rollout blows up is refused with the health check's own words (the
+    frame, why, and the substeps that should be stable), not a bare 'unstable'."""
+    from jaxmpm.errors import JaxmpmError
+
+    scene, obs = _hidden(THROW)
+    body = {**scene.params["bodies"][0], "E": jnp.asarray(3e6, jnp.float32)}  # a stress wave crosses > 1 cell a step
+    stiff = {**scene.params, "bodies": (body,)}
+    with pytest.raises(JaxmpmError, match=r"unstable at the starting parameters \(the simulation became unstable "
+                                          r"at frame 0 .*stress wave.*substeps >= \d+ per frame"):
+        discover(scene.model, stiff, obs, **FAST)
+
+
 def test_the_prune_keeps_a_candidate_that_could_forecast_better_than_the_passing_refit():
     """The 2D dam break's step 1 (docs/case_studies/dam_break_2d.md): damping's refit passed,
     removing 95 % of the training loss but only 46 % of the held-out error; floor friction,
