@@ -13,8 +13,8 @@ from scenes import block_spec
 from jaxmpm.cli import main
 from jaxmpm.errors import SimulationError
 from jaxmpm.scene import load_scene
-from jaxmpm.step import (ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, simulate_healthy, stable_substeps, unhealthy,
-                         wave_cfl)
+from jaxmpm.step import (ENERGY_GAIN_LIMIT, Trajectory, health_message, run_frames, simulate_healthy, stable_substeps,
+                         unhealthy, wave_cfl)
 
 #: Issue 14's scene: sand dropped at 1 m/s onto a box 2 cells thick with 40 substeps per
 #: frame (stress-wave CFL 1.27). It used to run to the end while the sand was thrown upward
