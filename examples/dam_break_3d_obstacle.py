@@ -11,7 +11,9 @@ jaxmpm's axes: x along the tank, y up (gravity -y), z across. The experiment is 
 the tank's centre plane z = 0.5 (box and gauges), so only the half z in [0, 0.5] is simulated,
 with slip walls (the centre plane is a symmetry plane). The resolution is what 2 CPU cores run
 in reasonable time (``--dx``, default 0.1 m: about 2 600 particles, 1 100 steps for 1.0 s; the
-run below takes about 45 minutes on 2 busy CPU cores).
+run below takes about 85 s on 2 idle CPU cores). ``--resolution-check`` re-simulates its base and
+extended models at dx/2; ``--dx 0.05 --substeps 88`` runs the whole study there (42 minutes:
+docs/case_studies/dam_break_3d_obstacle.md, "At twice the resolution").
 
 The base model has no free parameter by default: the water keeps its own viscosity (``--fit
 mu`` fits it, which can let an unphysically large viscosity absorb the discrepancy, as it does in 2D; the
