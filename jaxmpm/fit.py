@@ -130,6 +130,15 @@ SCAN_DECADES = (-1.0, 1.0, 2.0, 3.0)
 VELOCITY_POLISH = (0.015, 0.05, 0.15)
 
 
+def _finite_numbers(values, positive: bool = False) -> bool:
+    """Whether ``values`` is a sequence (not a string) of finite real numbers (not bools), all
+    positive when ``positive``."""
+    if isinstance(values, (str, bytes)):
+        return False
+    return all(isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) and (d > 0 or not positive)
+               for d in values)
+
+
 class FitError(JaxmpmError, RuntimeError):
     """A fit could not start (e.g. the simulation is unstable even at small dt)."""
 
@@ -244,12 +253,9 @@ class FitConfig:
             raise JaxmpmError(f"max_dt_halvings must be >= 0, got {self.max_dt_halvings}")
         if isinstance(self.stages, str) and self.stages not in ("auto", "single"):
             raise JaxmpmError(f"stages must be 'auto', None or a list of Stage, got {self.stages!r}")
-        if self.scan is not None and (isinstance(self.scan, (str, bytes)) or not all(
-                isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) for d in self.scan)):
+        if self.scan is not None and not _finite_numbers(self.scan):
             raise JaxmpmError(f"scan must be a sequence of finite decade offsets, got {self.scan!r}")
-        if self.polish is not None and (isinstance(self.polish, (str, bytes)) or not all(
-                isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d) and d > 0
-                for d in self.polish)):
+        if self.polish is not None and not _finite_numbers(self.polish, positive=True):
             raise JaxmpmError(f"polish must be a sequence of positive finite moves (units of dx / T), got "
                               f"{self.polish!r}")
 
