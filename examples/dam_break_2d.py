@@ -120,20 +120,34 @@ def sequences(cells: int, names=("mm_large", "ko", "mm_small")):
 PHYSICAL = ("collider_friction", "restitution", "drag", "damping", "rate_dependence", "time_offset")
 
 
+def positions(model, params, record: dict, kind: str) -> np.ndarray:
+    """Particle positions ``(frames, N, 2)`` in m of a healthy rollout
+    (:func:`jaxmpm.simulate_healthy`: dt halved while the run is unhealthy). Under ``kind``,
+    ``record`` gets the substeps that ran and the health check's line for each discarded run,
+    which is also printed, so a halving is never silent."""
+    from jaxmpm import simulate_healthy
+
+    traj, ran, discarded = simulate_healthy(model, params)
+    for why in discarded:
+        print(why, file=sys.stderr)
+    record.setdefault("substeps", {})[kind] = ran.substeps
+    record.setdefault("unstable_at_fewer_substeps", {})[kind] = discarded
+    return np.asarray(traj.x)
+
+
 def resolution_check(result, cells: int) -> dict:
     """The fitted base model at twice the resolution (dx/2, dt/2): how far the predicted fronts
     move, against the base model's error (the dt/2 check alone does not refine dx)."""
-    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     mu = float(result.base_values.get("mu", WATER_MU))
-    out = {"cells": [cells, 2 * cells], "mu": mu, "rms_front_change_m": {}, "rms_base_error_m": {}}
+    out = {"cells": [cells, 2 * cells], "mu": mu, "rms_front_change_m": {}, "rms_base_error_m": {}, "runs": {}}
     for n in SERIES:
         t, xf, _, _ = load_front(n)
         fronts = []
         for c in (cells, 2 * cells):
             sc = load_scene(scene_spec(n, c, mu=mu))
-            x = np.asarray(simulate_healthy(sc.model, sc.params)[0].x)
+            x = positions(sc.model, sc.params, out["runs"].setdefault(n, {}), f"cells_{c}")
             h = float(np.max(np.asarray(sc.model.bodies[0].vol0))) ** 0.5
             tt = np.arange(sc.model.frames) * sc.model.frame_dt
             fronts.append(np.interp(t, tt, x[:, :, 0].max(axis=1) + 0.5 * h))
@@ -166,7 +180,6 @@ def summary(out_dir, cells: int) -> dict:
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
-    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -185,7 +198,7 @@ def summary(out_dir, cells: int) -> dict:
         m = sc.model
         tt = np.arange(m.frames) * m.frame_dt
         h = float(np.max(np.asarray(m.bodies[0].vol0))) ** 0.5
-        curves = {}
+        curves, runs = {}, {}
         for kind in ("base", "extended"):
             params = sc.params
             if kind == "extended":
@@ -193,7 +206,7 @@ def summary(out_dir, cells: int) -> dict:
                     continue
                 ext = [e for e in causes if e != "time_offset"]
                 params = X.enable(m, params, ext, {e: values.get(e, {}) for e in ext}) if ext else params
-            x = np.asarray(simulate_healthy(m, params)[0].x)
+            x = positions(m, params, runs, kind)
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             shift = t0 if kind == "extended" else 0.0
             curves[kind] = (tt + shift, front)
@@ -202,6 +215,7 @@ def summary(out_dir, cells: int) -> dict:
             "a_m": a, "points": int(len(t)),
             **{f"rms_{k}_m": float(np.sqrt(np.mean((v - xf) ** 2))) for k, v in sim_at.items()},
             **{f"mean_{k}_m": float(np.mean(v - xf)) for k, v in sim_at.items()},
+            **runs,
         }
         k2 = math.sqrt(2 * G / a)
         ax.plot(T, Z, "o", color=colors[n], ms=4, label=f"measured: {label}")
@@ -239,7 +253,6 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
     import matplotlib.pyplot as plt
 
     from jaxmpm import extensions as X
-    from jaxmpm import simulate_healthy
     from jaxmpm.scene import load_scene
 
     out_dir = Path(out_dir)
@@ -253,16 +266,17 @@ def per_column_scan(out_dir, cells: int, frictions=(0.0, 0.03, 0.06, 0.09, 0.12,
         tt = np.arange(m.frames) * m.frame_dt
         h = float(np.max(np.asarray(m.bodies[0].vol0))) ** 0.5
         err = np.zeros((len(frictions), len(offsets)))
+        runs = {}
         for i, mu_b in enumerate(frictions):
             params = X.enable(m, sc.params, ["collider_friction"], {"collider_friction": {"floor": mu_b}})
-            x = np.asarray(simulate_healthy(m, params)[0].x)
+            x = positions(m, params, runs, f"mu_b_{mu_b:g}")
             front = x[:, :, 0].max(axis=1) + 0.5 * h
             for j, t0 in enumerate(offsets):
                 err[i, j] = np.sqrt(np.mean((np.interp(t - t0, tt, front, left=a) - xf) ** 2))
         i, j = np.unravel_index(np.argmin(err), err.shape)
         res["columns"][n] = {"a_m": a, "best_friction": float(frictions[i]), "best_t0_s": float(offsets[j]),
                              "best_rms_m": float(err[i, j]), "best_rms_over_a": float(err[i, j] / a),
-                             "rms_m": err.tolist()}
+                             "rms_m": err.tolist(), **runs}
         ax.plot(frictions, err.min(axis=1) / a, "o-", label=f"{label} (best mu_b {frictions[i]:g}, t0 {offsets[j]*1e3:.0f} ms)")
     ax.set_xlabel("floor friction coefficient mu_b (time offset t0 re-fitted per point)")
     ax.set_ylabel("RMS front error / a")
@@ -297,7 +311,7 @@ def main(argv=None) -> int:
     if args.summary_only:
         print(json.dumps(summary(args.out, cells), indent=1))
         scan = per_column_scan(args.out, cells)
-        print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk != "rms_m"} for k, v in scan["columns"].items()}))
+        print(json.dumps({k: {kk: vv for kk, vv in v.items() if kk.startswith("best")} for k, v in scan["columns"].items()}))
         return 0
     seqs = sequences(cells)
     for s in seqs:

@@ -114,6 +114,25 @@ def test_dam_break_2d_summary_replots_the_three_columns(tmp_path):
     assert set(res["columns"]) == set(module.SERIES) and res["t0"] == 0.01
     for row in res["columns"].values():
         assert np.isfinite([row["rms_base_m"], row["rms_extended_m"]]).all()
+        # both rollouts healthy at the scene's dt, and the summary says which dt ran
+        assert row["unstable_at_fewer_substeps"] == {"base": [], "extended": []}
+        assert row["substeps"]["base"] == row["substeps"]["extended"] > 0
+
+
+def test_dam_break_2d_rollouts_say_when_dt_was_halved(capsys):
+    """The 2D study's rollouts (summary, resolution check, per-column scan) go through
+    ``positions``: a run too coarse in dt is re-run at dt/2 and the discarded runs' health lines
+    are printed and recorded, not dropped (they were before session 49)."""
+    module = _script("dam_break_2d")
+    seq = module.sequences(cells=3)[0]
+    coarse = seq.model.with_substeps(seq.model.substeps // 4)  # a stress-wave CFL number of ~3
+    record = {}
+    x = module.positions(coarse, seq.params, record, "base")
+    assert x.shape == (seq.model.frames, seq.model.num_particles, 2) and np.isfinite(x).all()
+    assert record["substeps"] == {"base": 4 * coarse.substeps}
+    lines = record["unstable_at_fewer_substeps"]["base"]
+    assert len(lines) == 2 and all("unstable" in line and "substeps" in line for line in lines)
+    assert capsys.readouterr().err.splitlines() == lines
 
 
 @pytest.mark.slow
