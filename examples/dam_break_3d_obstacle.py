@@ -13,7 +13,8 @@ with slip walls (the centre plane is a symmetry plane). The resolution is what 2
 in reasonable time (``--dx``, default 0.1 m: about 2 600 particles, 1 100 steps for 1.0 s; the
 run below takes about 85 s on 2 idle CPU cores). ``--resolution-check`` re-simulates its base and
 extended models at dx/2; ``--dx 0.05 --substeps 88`` runs the whole study there (42 minutes:
-docs/case_studies/dam_break_3d_obstacle.md, "At twice the resolution").
+docs/case_studies/dam_break_3d_obstacle.md, "At twice the resolution"); ``--dt-series 88,176,352``
+re-simulates a report's models at those substep counts (is the error converged in dt?).
 
 The base model has no free parameter by default: the water keeps its own viscosity (``--fit
 mu`` fits it, which can let an unphysically large viscosity absorb the discrepancy, as it does in 2D; the
@@ -109,14 +110,18 @@ def sequence(dx: float, t_end: float, substeps: int | None = None):
     return Sequence(sc.model, sc.params, observation(spec, t_end), name="spheric_test2", probes=gauge_probes(dx))
 
 
-def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") -> dict:
+def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", substeps: int | None = None,
+            extended: dict[str, float] | None = None) -> dict:
     """Per-gauge RMS errors and arrival times (first time the height exceeds ``wet`` metres,
     measured and simulated alike; a particle layer is about dx/4 thick) of the base and the
     extended model from ``report.json``, simulated at ``dx`` (``summary{tag}.json``,
     ``gauges{tag}.png``), and the RMS error over all four gauges in the held-out window.
 
     With ``dx`` half the report's, it is the resolution check: the same models (the extension
-    keeps the value fitted at the report's dx) at twice the resolution."""
+    keeps the value fitted at the report's dx) at twice the resolution. ``substeps`` per frame
+    overrides the scene's rule (a run that fails the health check is rerun at dt/2 and says
+    so); ``extended`` (``{"ext.key": value}``, the report's naming) replaces the report's
+    extended model, e.g. with a refit that was not selected."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -129,6 +134,8 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
 
     out_dir = Path(out_dir)
     det = json.loads((out_dir / "report.json").read_text())["details"]
+    if extended is not None:
+        det = {"causes": sorted({k.partition(".")[0] for k in extended}), "extended_parameters": extended}
     causes = list(det.get("causes") or [])
     values, t0 = {}, 0.0
     for k, v in (det.get("extended_parameters") or {}).items():
@@ -139,7 +146,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
             t0 = float(np.asarray(v))
         else:
             values.setdefault(e, {})[key] = np.asarray(v)
-    seq = sequence(dx, t_end)
+    seq = sequence(dx, t_end, substeps)
     m = seq.model
     tt = np.arange(m.frames) * m.frame_dt
     t_obs, h_obs = load_gauges(t_end, every=1)
@@ -206,6 +213,45 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "") 
     return res
 
 
+def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: dict[str, float] | None = None) -> dict:
+    """Is the held-out error converged in dt? :func:`summary` at each substep count (its files
+    tagged ``_substeps{n}``), and ``dt_series.json`` / ``dt_series.png``: the held-out RMS
+    error over all four gauges of the base and the extended model against dt."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    rows = []
+    for n in substeps:
+        r = summary(out_dir, dx, t_end, tag=f"_substeps{n}", substeps=n, extended=extended)
+        rows.append({"substeps_asked": n, "substeps": r["substeps"], "causes": r["causes"],
+                     "rms_all_heldout_window_m": r["rms_all_heldout_window_m"],
+                     "unstable_at_fewer_substeps": r["unstable_at_fewer_substeps"]})
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    frame_dt = sequence(dx, t_end).model.frame_dt
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for kind, style in (("base", "C3o--"), ("extended", "C0s-")):
+        pts = [(frame_dt / r["substeps"][kind], r["rms_all_heldout_window_m"][kind]) for r in rows if kind in r["substeps"]]
+        if pts:
+            label = kind if kind == "base" else "extended: " + " + ".join(rows[0]["causes"])
+            ax.plot(*zip(*pts), style, label=label)
+    ax.set_xscale("log")
+    ax.set_xlabel("dt (s)")
+    ax.set_ylabel("held-out RMS gauge error (m)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"dx = {dx} m: the held-out error against dt", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out_dir / "dt_series.png", dpi=110)
+    plt.close(fig)
+    res = {"dx": dx, "t_end": t_end, "frame_dt": frame_dt, "extended": extended, "rows": rows}
+    (out_dir / "dt_series.json").write_text(json.dumps(res, indent=1))
+    return res
+
+
 class _State:
     """What a gauge probe reads: particle positions and reference volumes (3D)."""
 
@@ -234,9 +280,25 @@ def main(argv=None) -> int:
     ap.add_argument("--resolution-check", action="store_true",
                     help="only simulate the base and extended models of an existing report.json (fitted at --dx) at "
                          "dx/2: summary_dx_half.json, gauges_dx_half.png")
+    ap.add_argument("--dt-series", default="",
+                    help="only simulate the models of an existing report.json at these substep counts (comma-separated): "
+                         "dt_series.json, dt_series.png")
+    ap.add_argument("--extended", default="",
+                    help="with --dt-series or --summary-only: the extended model to use instead of the report's, as "
+                         "ext.key=value pairs (comma-separated), e.g. collider_friction.floor=0.079,collider_friction.box=0")
     args = ap.parse_args(argv)
+    try:
+        extended = {k: float(v) for k, v in (kv.split("=") for kv in args.extended.split(",") if kv)} or None
+        counts = [int(n) for n in args.dt_series.split(",") if n]
+    except ValueError as e:
+        ap.error(f"--extended takes ext.key=value pairs and --dt-series integers ({e})")
+    if any(n < 1 for n in counts):
+        ap.error("--dt-series takes positive substep counts")
+    if counts:
+        print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended), indent=1))
+        return 0
     if args.summary_only:
-        print(json.dumps(summary(args.out, args.dx, args.t_end), indent=1))
+        print(json.dumps(summary(args.out, args.dx, args.t_end, substeps=args.substeps, extended=extended), indent=1))
         return 0
     if args.resolution_check:
         print(json.dumps(summary(args.out, args.dx / 2, args.t_end, tag="_dx_half"), indent=1))

@@ -103,6 +103,27 @@ def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path
         assert res["rms_all_heldout_window_m"][kind] == pytest.approx(np.sqrt(np.mean(per_gauge)), rel=1e-6)
 
 
+def test_dam_break_3d_obstacle_dt_series_reruns_the_models_at_each_dt(tmp_path):
+    """``--dt-series``: the base model and a given extended model (here not the report's, which
+    selected nothing) at several substep counts, and the held-out error of each against dt."""
+    module = _script("dam_break_3d_obstacle")
+    (tmp_path / "report.json").write_text(json.dumps({"details": {"causes": []}}))
+    n = module.sequence(dx=0.2, t_end=0.1).model.substeps
+    extended = {"collider_friction.floor": 0.5, "collider_friction.box": 0.0}
+    res = module.dt_series(tmp_path, dx=0.2, t_end=0.1, substeps=[n, 2 * n], extended=extended)
+    assert json.loads((tmp_path / "dt_series.json").read_text()) == res
+    assert (tmp_path / "dt_series.png").stat().st_size > 0
+    assert [r["substeps"] for r in res["rows"]] == [{"base": n, "extended": n}, {"base": 2 * n, "extended": 2 * n}]
+    for r in res["rows"]:
+        assert r["causes"] == ["collider_friction"]
+        assert np.isfinite(list(r["rms_all_heldout_window_m"].values())).all()
+        tagged = json.loads((tmp_path / f"summary_substeps{r['substeps_asked']}.json").read_text())
+        assert tagged["rms_all_heldout_window_m"] == r["rms_all_heldout_window_m"]
+    # the floor friction changes the prediction, and dt/2 changes it a little
+    first, second = (r["rms_all_heldout_window_m"] for r in res["rows"])
+    assert first["extended"] != first["base"] and second["base"] != first["base"]
+
+
 def test_dam_break_2d_summary_replots_the_three_columns(tmp_path):
     """The 2D case study's ``--summary-only``: base and extended fronts of every column."""
     module = _script("dam_break_2d")
