@@ -50,7 +50,7 @@ def print_table(rows: list[dict]) -> None:
 def main() -> None:
     from jaxmpm.bench_sysid import FIT_NAMES, errors
     from jaxmpm.identify.parameters import with_values
-    from jaxmpm.reconstruct import read_dataset, reconstruct, silhouette_iou, write_scene
+    from jaxmpm.reconstruct import check_cameras, read_dataset, reconstruct, scene_skeleton, silhouette_iou, write_scene
     from jaxmpm.reconstruct.collider import chamfer_distance
     from jaxmpm.reconstruct.pipeline import identify_material, simulated_masks
     from jaxmpm.reconstruct.synthetic import (
@@ -84,6 +84,8 @@ def main() -> None:
                          "(or the reconstruction) prefer the values found")
     ap.add_argument("--raise-collider", type=float, default=0.0, metavar="M",
                     help="raise a box's top by M metres (the data's and the true one's): off the node row it lies on")
+    ap.add_argument("--recalibrate-views", action="store_true",
+                    help="move the principal point of views the cameras' check flags (identify --recalibrate-views)")
     ap.add_argument("--out", default=None, help="append the rows to this .jsonl file")
     ap.add_argument("--table", nargs="+", default=None, metavar="JSONL",
                     help="only print the rows of these .jsonl files as one markdown table")
@@ -118,6 +120,8 @@ def main() -> None:
         folder, _ = render_drop_dataset(Path(tmp) / "ds", views=args.views, res=args.res, min_elevation_deg=args.min_elevation,
                                  material=args.material, collider=args.collider, degradation=args.degrade)
         ds = read_dataset(folder)
+        domain = scene_skeleton(ds, args.material)["domain"]
+        ds, offsets = check_cameras(ds, domain["lo"], domain["hi"], recalibrate=args.recalibrate_views)
         obs = ds.observation
         for kind in args.colliders.split(","):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -158,6 +162,9 @@ def main() -> None:
                 "iou_mean": float(iou.mean()), "iou_min": float(iou.min()), "converged": bool(result.converged),
                 "iterations": int(result.iterations), "notes": list(result.notes) + evaluation_notes,
                 "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+                "view_offsets_px": None if offsets is None else np.round(offsets.offsets, 3).tolist(),
+                "views_flagged": None if offsets is None else np.flatnonzero(offsets.flagged()).tolist(),
+                "recalibrate_views": args.recalibrate_views,
             }
             if args.at_truth:
                 at_truth = with_values(scene.model, result.params, {**truth, "velocity": truth_v})

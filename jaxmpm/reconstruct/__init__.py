@@ -1,6 +1,10 @@
 """From views to a scene: visual hulls, body particles, colliders as meshes and fitted 2D
 Gaussian surfels, and the ``identify`` pipeline (docs/identify.md)."""
 
+from .calibration import ViewOffsets as ViewOffsets
+from .calibration import check_cameras as check_cameras
+from .calibration import recalibrated as recalibrated
+from .calibration import view_offsets as view_offsets
 from .collider import Surfels as Surfels
 from .collider import chamfer_distance as chamfer_distance
 from .collider import fit_surfels as fit_surfels

@@ -33,6 +33,9 @@ def add_identify_parser(sub, func) -> None:
     p.add_argument("--refine-velocity", action="store_true",
                    help="refit the initial velocity with the material after the pre-contact stage (default: "
                         "keep the pre-contact estimate)")
+    p.add_argument("--recalibrate-views", action="store_true",
+                   help="move the principal point of every view whose masks sit 1 px or more off the other views' "
+                        "visual hull by that offset (default: only warn; the check runs on 3 views or more)")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.set_defaults(func=func)
 
@@ -65,7 +68,8 @@ def run_identify(args) -> int:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
                        surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
-                       collider_rgb=args.collider_rgb, refine_velocity=args.refine_velocity, video=not args.no_video,
+                       collider_rgb=args.collider_rgb, refine_velocity=args.refine_velocity,
+                       recalibrate_views=args.recalibrate_views, video=not args.no_video,
                        stage=stage, progress=progress)
     finally:
         for bar in bars.values():

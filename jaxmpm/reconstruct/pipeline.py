@@ -30,6 +30,7 @@ from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
+from .calibration import ViewOffsets, check_cameras
 from .refine import BodyRefinement, refine_body
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
@@ -504,8 +505,13 @@ def body_collider_gap(recon: Reconstruction) -> float | None:
     return float(-np.max(trimesh.proximity.signed_distance(recon.collider_mesh, recon.points)))
 
 
-def identify_warnings(result, recon: Reconstruction, dx: float) -> list[str]:
+def identify_warnings(result, recon: Reconstruction, dx: float, offsets: ViewOffsets | None = None,
+                      recalibrated_views: bool = False) -> list[str]:
     """What in the identification contradicts the data, with its likely cause and remedy.
+
+    * A view's masks sit a pixel or more off the silhouette of the other views' visual hull
+      (:func:`jaxmpm.reconstruct.calibration.view_offsets`): its camera is probably
+      miscalibrated (said only when ``recalibrated_views`` did not correct it).
 
     * The fit found the body in contact from its first frame while the silhouettes show it
       falling freely for two or more frames: the reconstructed collider reaches too close
@@ -517,6 +523,10 @@ def identify_warnings(result, recon: Reconstruction, dx: float) -> list[str]:
       identification on the reconstructed box failed; docs/identify.md §4).
     """
     out = []
+    if offsets is not None and not recalibrated_views:
+        out += [f"{line}: its camera is probably miscalibrated, and the fit trusts its shifted silhouettes (3 px in one "
+                "of six views moved μ by 0.13 decades in docs/identify.md). Check its calibration, or rerun with "
+                "--recalibrate-views, which moves its principal point by that offset" for line in offsets.describe()]
     if recon.collider_roof is not None and recon.collider_roof[0] > 0.5 * dx:
         h, theta = recon.collider_roof
         out.append(
@@ -539,8 +549,10 @@ def identify_warnings(result, recon: Reconstruction, dx: float) -> list[str]:
 
 
 def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, times: np.ndarray, material: str,
-                 warnings: list[str] | None = None) -> None:
-    """``report.md``: parameters ± σ, IoU over time per view, reconstruction quality."""
+                 warnings: list[str] | None = None, offsets: ViewOffsets | None = None,
+                 recalibrated_views: bool = False) -> None:
+    """``report.md``: parameters ± σ, IoU over time per view, the cameras' consistency check,
+    reconstruction quality."""
     lines = [f"# identify: {material}", ""]
     for w in warnings or []:
         lines += [f"> **Warning**: {w}.", ""]
@@ -557,6 +569,17 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
               "|---" * (iou.shape[0] + 1) + "|"]
     for t in range(iou.shape[1]):
         lines.append(f"| {times[t]:.4g} | " + " | ".join(f"{iou[v, t]:.3f}" for v in range(iou.shape[0])) + " |")
+    if offsets is not None:
+        fixed = offsets.flagged() if recalibrated_views else np.zeros(len(offsets.iou), bool)
+        lines += ["", "## Cameras", "",
+                  f"Each view's masks against the silhouette of the other views' visual hull (frames "
+                  f"{', '.join(map(str, offsets.frames))}): the offset that overlaps them best, and the IoU before "
+                  "and after it. A view is flagged at 1 px or more with an IoU gain of 0.01 or more.", "",
+                  "| view | offset across, down (px) | IoU | IoU shifted | |", "|---|---|---|---|---|"]
+        for v, ((du, dv), a, b, flag) in enumerate(zip(offsets.offsets, offsets.iou, offsets.iou_shifted,
+                                                      offsets.flagged())):
+            what = ("flagged; principal point moved by the offset" if fixed[v] else "flagged") if flag else ""
+            lines.append(f"| {v} | {du:+.2f}, {dv:+.2f} | {a:.3f} | {b:.3f} | {what} |")
     lines += ["", "## Reconstruction", "",
               f"- body: {len(recon.points)} particles, visual-hull volume {recon.body_hull.volume:.4g} m³",
               "- first-frame IoU per view (observed vs re-rendered particles): "
@@ -596,13 +619,16 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
 @dataclass
 class IdentifyResult:
     """Outcome of :func:`identify`: the fit, the reconstruction, IoU ``(V, T)``, the files
-    written and what contradicts the data (:func:`identify_warnings`)."""
+    written, what contradicts the data (:func:`identify_warnings`) and the cameras'
+    consistency check (:func:`jaxmpm.reconstruct.calibration.view_offsets`; None with fewer
+    than 3 views)."""
 
     fit: object
     reconstruction: Reconstruction
     iou: np.ndarray
     files: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    view_offsets: ViewOffsets | None = None
 
 
 def identify(
@@ -621,6 +647,7 @@ def identify(
     rgb: float = 0.0,
     collider_rgb: float = 0.0,
     refine_velocity: bool = False,
+    recalibrate_views: bool = False,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
@@ -639,6 +666,10 @@ def identify(
         tolerance, collider, surfel_steps, refine, collider_rgb: see :func:`reconstruct`.
         max_steps, num_pixels, rgb, refine_velocity: of the fit (:func:`identify_material`; with ``refine``
             and RGB the particles' fitted colours are the RGB term's).
+        recalibrate_views: move the principal point of every view that the cameras' check
+            (:func:`jaxmpm.reconstruct.calibration.view_offsets`, run before anything else on 3
+            views or more) flags by its offset, before the reconstruction; otherwise a flagged
+            view is only a warning.
         video: write the overlay video.
         stage: called with the name of each stage as it starts.
         progress: ``progress(step, loss)`` within the surfel fit and the material fit.
@@ -660,6 +691,9 @@ def identify(
         raise ObservationError(f"unknown material {material!r}; expected one of {', '.join(sorted(MATERIALS))}")
     names = list(params) if params else list(MATERIALS[material].required()) + ["velocity"]
     _check_rgb_weight(rgb, dataset.observation.images)
+    say("check cameras")
+    domain = scene_skeleton(dataset, material)["domain"]
+    dataset, offsets = check_cameras(dataset, domain["lo"], domain["hi"], recalibrate=recalibrate_views)
     say("reconstruct")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
                         refine=refine, collider_rgb=collider_rgb, progress=progress)
@@ -678,9 +712,10 @@ def identify(
         evaluation_notes: list[str] = []
         sim = simulated_masks(scene, result.params, dataset.observation, result.substeps, notes=evaluation_notes)
         iou = silhouette_iou(sim, dataset.observation.masks)
-        warnings = identify_warnings(result, recon, float(scene.model.grid.dx)) + evaluation_notes
+        warnings = identify_warnings(result, recon, float(scene.model.grid.dx), offsets,
+                                     recalibrate_views) + evaluation_notes
         times = np.asarray(dataset.observation.times)
-        write_report(staging / "report.md", result, recon, iou, times, material, warnings)
+        write_report(staging / "report.md", result, recon, iou, times, material, warnings, offsets, recalibrate_views)
         imageio.imwrite(staging / "overlay_frames.png", overlay_sheet(dataset.observation.masks, sim))
         iou_curves(staging / "iou.png", iou, times)
         if video:
@@ -693,4 +728,5 @@ def identify(
             files[f.stem] = out / f.name
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-    return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files, warnings=warnings)
+    return IdentifyResult(fit=result, reconstruction=recon, iou=iou, files=files, warnings=warnings,
+                          view_offsets=offsets)
