@@ -364,6 +364,9 @@ def test_identify_cli_end_to_end(dataset, tmp_path):
     assert (out / "overlay.mp4").stat().st_size > 0
     report = (out / "report.md").read_text()
     assert "Silhouette IoU over time" in report and "first-frame refinement (masks and RGB" in report
+    # the cameras' check ran on the six views and found them consistent
+    assert "## Cameras" in report and "flagged" not in report.split("## Cameras")[1].split("## ")[0].split("|---|")[1]
+    assert "miscalibrated" not in report
 
 
 def test_reconstruction_uses_the_refined_body(dataset, tmp_path):
