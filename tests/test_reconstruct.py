@@ -517,6 +517,44 @@ def test_a_failing_fit_leaves_no_output(dataset, tmp_path, monkeypatch):
     assert asked["refine_velocity"] is True
 
 
+@pytest.mark.parametrize("recalibrate", [False, True])
+def test_identify_checks_the_cameras_first_and_recalibrates_a_shifted_view_when_asked(dataset, tmp_path,
+                                                                                       monkeypatch, recalibrate):
+    """View 0's images and masks shifted 3 px right (a miscalibrated camera): ``identify``
+    measures the offset before reconstructing, and the fit sees view 0's principal point moved
+    by it only with ``recalibrate_views``."""
+    import jaxmpm.reconstruct.pipeline as pipeline
+
+    ds = read_dataset(dataset[0])
+    obs = ds.observation
+    masks, images = obs.masks.copy(), obs.images.copy()
+    masks[0], images[0] = np.roll(masks[0], 3, axis=-1), np.roll(images[0], 3, axis=-2)
+    shifted = dataclasses.replace(ds, observation=dataclasses.replace(obs, masks=masks, images=images))
+    monkeypatch.setattr(pipeline, "read_dataset", lambda folder, hint=None: shifted)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fit(scene, observation, names, **kwargs):
+        seen["K"] = np.asarray(observation.intrinsics, float)
+        raise Stop
+
+    monkeypatch.setattr(pipeline, "identify_material", fit)
+    stages = []
+    with pytest.raises(Stop):
+        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2, recalibrate_views=recalibrate,
+                          stage=stages.append)
+    assert stages[:3] == ["read", "check cameras", "reconstruct"]
+    moved = seen["K"][:, :2, 2] - np.asarray(obs.intrinsics, float)[:, :2, 2]
+    if recalibrate:
+        # the check's accuracy is about half a pixel (docs/identify.md, stage 2): here +2.94, -0.54
+        np.testing.assert_allclose(moved[0], [3.0, 0.0], atol=0.6)
+        np.testing.assert_array_equal(moved[1:], 0.0)
+    else:
+        np.testing.assert_array_equal(moved, 0.0)
+
+
 @pytest.mark.parametrize("refine_velocity", [False, True])
 def test_identify_material_refits_the_velocity_with_the_material_only_when_asked(dataset, monkeypatch,
                                                                                  refine_velocity):
