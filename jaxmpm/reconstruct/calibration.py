@@ -92,7 +92,7 @@ def hull_silhouette(
     hi,
     *,
     tolerance: int = 0,
-    samples: int = 192,
+    samples: int = 96,
 ) -> np.ndarray:
     """Whether each pixel ``(rows, cols)`` of a camera ``(K, c2w)`` sees the visual hull of
     ``masks`` (``(V, H, W)`` bool, cameras ``intrinsics``, ``cam_to_world``) inside the box
