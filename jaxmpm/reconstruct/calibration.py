@@ -6,8 +6,8 @@ pixels, its mask sits shifted against that silhouette, and the body it helps car
 slice (docs/identify.md: 3 px in one of six views moved μ by 0.13 decades).
 
 For each view, :func:`view_offsets` renders the other views' hull by casting a ray through
-each pixel centre and asking whether some point of the ray, inside the domain, projects into
-the masks of all but ``tolerance`` of the other views. The integer shift of the view's mask
+each pixel centre and asking whether some point of the ray (sampled inside the box of a
+coarse hull of all views) projects into the masks of all but ``tolerance`` of the other views. The integer shift of the view's mask
 that overlaps that silhouette best (IoU summed over the first few frames), refined to a
 fraction of a pixel by a parabola through its neighbours, is the view's offset. Moving the
 camera's principal point ``(cx, cy)`` by the offset puts the body where the mask shows it.

@@ -1,7 +1,9 @@
 """``identify``: from a PAC-NeRF-layout folder to a scene, fitted parameters and a report.
 
 Stages (each callable alone): :func:`jaxmpm.reconstruct.read_dataset` →
-:func:`scene_skeleton` (the hint plus stated defaults) → :func:`reconstruct_body` →
+:func:`scene_skeleton` (the hint plus stated defaults) →
+:func:`jaxmpm.reconstruct.check_cameras` (each view against the others' visual hull) →
+:func:`reconstruct_body` →
 :func:`reconstruct_colliders` → :func:`write_scene` → :func:`identify_material` (the one
 call of :func:`jaxmpm.fit`) → :func:`simulated_masks` (IoU over time) → :func:`write_report`.
 :func:`identify` runs them all; it writes into a staging folder beside the output folder and
@@ -26,11 +28,11 @@ from ..errors import ObservationError
 from ..fit_report import format_value
 from ..identify.residuals import frames_needed, observation_cameras
 from ..render import tile_views
+from .calibration import ViewOffsets, check_cameras
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
-from .calibration import ViewOffsets, check_cameras
 from .refine import BodyRefinement, refine_body
 
 #: Defaults for what a hint does not give (docs/identify.md states them).
@@ -512,7 +514,6 @@ def identify_warnings(result, recon: Reconstruction, dx: float, offsets: ViewOff
     * A view's masks sit a pixel or more off the silhouette of the other views' visual hull
       (:func:`jaxmpm.reconstruct.calibration.view_offsets`): its camera is probably
       miscalibrated (said only when ``recalibrated_views`` did not correct it).
-
     * The fit found the body in contact from its first frame while the silhouettes show it
       falling freely for two or more frames: the reconstructed collider reaches too close
       to the body. A visual hull cannot carve what no silhouette edge touches — the top of
