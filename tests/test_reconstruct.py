@@ -536,16 +536,24 @@ def test_identify_checks_the_cameras_first_and_recalibrates_a_shifted_view_when_
     class Stop(Exception):
         pass
 
+    told = []
+
     def fit(scene, observation, names, **kwargs):
         seen["K"] = np.asarray(observation.intrinsics, float)
+        seen["told"] = list(told)
         raise Stop
 
     monkeypatch.setattr(pipeline, "identify_material", fit)
     stages = []
     with pytest.raises(Stop):
         pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2, recalibrate_views=recalibrate,
-                          stage=stages.append)
+                          stage=stages.append, warn=told.append)
     assert stages[:3] == ["read", "check cameras", "reconstruct"]
+    # the warning reaches the user before the fit starts, unless the view was recalibrated
+    if recalibrate:
+        assert seen["told"] == []
+    else:
+        assert len(seen["told"]) == 1 and seen["told"][0].startswith("view 0's masks sit +2.9 px across")
     moved = seen["K"][:, :2, 2] - np.asarray(obs.intrinsics, float)[:, :2, 2]
     if recalibrate:
         # the check's accuracy is about half a pixel (docs/identify.md, stage 2): here +2.94, -0.54

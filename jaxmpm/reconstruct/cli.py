@@ -59,6 +59,12 @@ def run_identify(args) -> int:
         print(f"[identify] {name}", file=sys.stderr, flush=True)
         bars["bar"] = tqdm(desc=name, unit="it", disable=not sys.stderr.isatty(), leave=False)
 
+    told: list[str] = []
+
+    def warn(message):
+        told.append(message)
+        print(f"warning: {message}", file=sys.stderr, flush=True)
+
     def progress(i, loss):
         if "bar" in bars:
             bars["bar"].update(1)
@@ -70,7 +76,7 @@ def run_identify(args) -> int:
                        surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
                        collider_rgb=args.collider_rgb, refine_velocity=args.refine_velocity,
                        recalibrate_views=args.recalibrate_views, video=not args.no_video,
-                       stage=stage, progress=progress)
+                       stage=stage, progress=progress, warn=warn)
     finally:
         for bar in bars.values():
             bar.close()
@@ -80,6 +86,7 @@ def run_identify(args) -> int:
     print(f"first-frame IoU per view: {', '.join(f'{x:.3f}' for x in res.reconstruction.body_iou)}; "
           f"IoU over all frames: min {res.iou.min():.3f}, mean {res.iou.mean():.3f}")
     for w in res.warnings:
-        print(f"warning: {w}", file=sys.stderr)
+        if w not in told:
+            print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(str(p) for p in res.files.values())}")
     return 0 if fit.converged else 1

@@ -507,6 +507,15 @@ def body_collider_gap(recon: Reconstruction) -> float | None:
     return float(-np.max(trimesh.proximity.signed_distance(recon.collider_mesh, recon.points)))
 
 
+def camera_warnings(offsets: ViewOffsets | None, recalibrated_views: bool = False) -> list[str]:
+    """A warning per view the cameras' check flagged (none when they were recalibrated)."""
+    if offsets is None or recalibrated_views:
+        return []
+    return [f"{line}: its camera is probably miscalibrated, and the fit trusts its shifted silhouettes (3 px in one "
+            "of six views moved μ by 0.13 decades in docs/identify.md). Check its calibration, or rerun with "
+            "--recalibrate-views, which moves its principal point by that offset" for line in offsets.describe()]
+
+
 def identify_warnings(result, recon: Reconstruction, dx: float, offsets: ViewOffsets | None = None,
                       recalibrated_views: bool = False) -> list[str]:
     """What in the identification contradicts the data, with its likely cause and remedy.
@@ -523,11 +532,7 @@ def identify_warnings(result, recon: Reconstruction, dx: float, offsets: ViewOff
       half a cell (measured: lowest view 15° up, bound 0.8 dx, roof 1 dx, and the
       identification on the reconstructed box failed; docs/identify.md §4).
     """
-    out = []
-    if offsets is not None and not recalibrated_views:
-        out += [f"{line}: its camera is probably miscalibrated, and the fit trusts its shifted silhouettes (3 px in one "
-                "of six views moved μ by 0.13 decades in docs/identify.md). Check its calibration, or rerun with "
-                "--recalibrate-views, which moves its principal point by that offset" for line in offsets.describe()]
+    out = camera_warnings(offsets, recalibrated_views)
     if recon.collider_roof is not None and recon.collider_roof[0] > 0.5 * dx:
         h, theta = recon.collider_roof
         out.append(
@@ -652,6 +657,7 @@ def identify(
     video: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, float], None] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> IdentifyResult:
     """Reconstruct the scene from a PAC-NeRF-layout folder and identify the material.
 
@@ -674,6 +680,8 @@ def identify(
         video: write the overlay video.
         stage: called with the name of each stage as it starts.
         progress: ``progress(step, loss)`` within the surfel fit and the material fit.
+        warn: called with each of the cameras' warnings as soon as the check has run, before
+            the long stages (they are in :attr:`IdentifyResult.warnings` too).
 
     Returns:
         An :class:`IdentifyResult`.
@@ -695,6 +703,8 @@ def identify(
     say("check cameras")
     domain = scene_skeleton(dataset, material)["domain"]
     dataset, offsets = check_cameras(dataset, domain["lo"], domain["hi"], recalibrate=recalibrate_views)
+    for w in camera_warnings(offsets, recalibrate_views):
+        (warn or (lambda _: None))(w)
     say("reconstruct")
     recon = reconstruct(dataset, material, tolerance=tolerance, collider=collider, surfel_steps=surfel_steps,
                         refine=refine, collider_rgb=collider_rgb, progress=progress)
