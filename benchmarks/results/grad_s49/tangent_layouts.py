@@ -6,7 +6,9 @@ MODE: ``vmap`` (the package's way: ``jax.vmap`` of ``jax.jvp`` over the k basis 
 ``unrollG`` (the rollout's scan carries the state and k/G groups of G tangents; each step calls
 ``jax.jvp`` of the step once per group, hoping XLA's CSE shares the repeated primal),
 ``sharedG`` (the same with the primal step written once more beside the groups), ``linvmap`` /
-``linmap`` (``jax.linearize`` of the rollout, its linear map vmapped / ``lax.map``ped over k).
+``linmap`` (``jax.linearize`` of the rollout, its linear map vmapped / ``lax.map``ped over k),
+``steplinvmap`` / ``steplinloop`` (``jax.linearize`` of each step inside the scan, its linear
+map vmapped over the k tangents / called once per tangent).
 Prints the forward's and each Jacobian's wall ms (min and median of REPEATS after a compiling
 call), their ratios, and the Jacobian's largest difference from ``vmap``'s.
 """
@@ -96,7 +98,7 @@ _, f = timed(final_x)
 line = [f"forward min {f.min():.0f} med {np.median(f):.0f}"]
 ref = {}
 for k in ks:
-    if mode.startswith("lin"): break
+    if mode.startswith("lin") or mode.startswith("steplin"): break
     if mode == "vmap":
         fn = jac_vmap(k)
     elif mode.startswith("unroll"):
@@ -122,6 +124,34 @@ if mode.startswith("lin"):
     line = [f"forward min {f.min():.0f}"]
     for k in ks:
         out, t = timed(jac_lin(k, mode[3:]))
+        o2 = jax.jit(jac_vmap(k))(theta0)
+        err = float(jnp.max(jnp.abs(out - o2)) / jnp.max(jnp.abs(o2)))
+        line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) relerr {err:.1e}")
+    print(mode, " | ".join(line), flush=True)
+
+
+def jac_steplin(k, how):
+    basis = jnp.eye(6, dtype=jnp.float32)[:k]
+    def jac(theta):
+        s0 = s0_of(theta)
+        ts0 = jax.vmap(lambda e: jax.jvp(s0_of, (theta,), (e,))[1])(basis)
+        def body(carry, _):
+            s, ts = carry
+            new_s, f = jax.linearize(lambda st, th: step_of(st, th), s, theta)
+            if how == "vmap":
+                new_ts = jax.vmap(f)(ts, basis)
+            else:
+                outs = [f(jax.tree.map(lambda a: a[i], ts), basis[i]) for i in range(k)]
+                new_ts = jax.tree.map(lambda *a: jnp.stack(a), *outs)
+            return (new_s, new_ts), None
+        (s, ts), _ = jax.lax.scan(body, (s0, ts0), None, length=STEPS)
+        return ts.x
+    return jac
+
+if mode.startswith("steplin"):
+    line = [f"forward min {f.min():.0f}"]
+    for k in ks:
+        out, t = timed(jac_steplin(k, mode[7:]))
         o2 = jax.jit(jac_vmap(k))(theta0)
         err = float(jnp.max(jnp.abs(out - o2)) / jnp.max(jnp.abs(o2)))
         line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) relerr {err:.1e}")
