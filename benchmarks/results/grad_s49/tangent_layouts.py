@@ -94,40 +94,12 @@ def timed(fn):
         t0 = time.perf_counter(); jax.block_until_ready(fn(theta0)); ts.append(time.perf_counter() - t0)
     return out, 1e3 * np.array(ts)
 
-_, f = timed(final_x)
-line = [f"forward min {f.min():.0f} med {np.median(f):.0f}"]
-ref = {}
-for k in ks:
-    if mode.startswith("lin") or mode.startswith("steplin"): break
-    if mode == "vmap":
-        fn = jac_vmap(k)
-    elif mode.startswith("unroll"):
-        fn = jac_unroll(k, int(mode[6:] or 1))
-    elif mode.startswith("shared"):
-        fn = jac_unroll_shared(k, int(mode[6:] or 1))
-    out, t = timed(fn)
-    if mode != "vmap":
-        o2, _ = jax.jit(jac_vmap(k))(theta0), None
-        err = float(jnp.max(jnp.abs(out.reshape(o2.shape) - o2)) / jnp.max(jnp.abs(o2)))
-    else:
-        err = 0.0
-    line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) med {np.median(t):.0f} ({np.median(t)/np.median(f):.2f}x) relerr {err:.1e}")
-print(mode, " | ".join(line), flush=True)
-
 def jac_lin(k, how):
     basis = jnp.eye(6, dtype=jnp.float32)[:k]
     def jac(theta):
         _, f = jax.linearize(final_x, theta)
         return jax.vmap(f)(basis) if how == "vmap" else jax.lax.map(f, basis)
     return jac
-if mode.startswith("lin"):
-    line = [f"forward min {f.min():.0f}"]
-    for k in ks:
-        out, t = timed(jac_lin(k, mode[3:]))
-        o2 = jax.jit(jac_vmap(k))(theta0)
-        err = float(jnp.max(jnp.abs(out - o2)) / jnp.max(jnp.abs(o2)))
-        line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) relerr {err:.1e}")
-    print(mode, " | ".join(line), flush=True)
 
 
 def jac_steplin(k, how):
@@ -148,11 +120,25 @@ def jac_steplin(k, how):
         return ts.x
     return jac
 
-if mode.startswith("steplin"):
-    line = [f"forward min {f.min():.0f}"]
-    for k in ks:
-        out, t = timed(jac_steplin(k, mode[7:]))
-        o2 = jax.jit(jac_vmap(k))(theta0)
-        err = float(jnp.max(jnp.abs(out - o2)) / jnp.max(jnp.abs(o2)))
-        line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) relerr {err:.1e}")
-    print(mode, " | ".join(line), flush=True)
+
+def jacobian(k):
+    """The Jacobian function of ``mode`` for k tangents."""
+    for prefix, build in (("unroll", jac_unroll), ("shared", jac_unroll_shared)):
+        if mode.startswith(prefix):
+            return build(k, int(mode[len(prefix):] or 1))
+    if mode.startswith("steplin"):
+        return jac_steplin(k, mode[len("steplin"):])
+    if mode.startswith("lin"):
+        return jac_lin(k, mode[len("lin"):])
+    return jac_vmap(k)
+
+
+_, f = timed(final_x)
+line = [f"forward min {f.min():.0f} med {np.median(f):.0f}"]
+for k in ks:
+    out, t = timed(jacobian(k))
+    o2 = jax.jit(jac_vmap(k))(theta0)
+    err = float(jnp.max(jnp.abs(out.reshape(o2.shape) - o2)) / jnp.max(jnp.abs(o2)))
+    line.append(f"k={k} min {t.min():.0f} ({t.min()/f.min():.2f}x) med {np.median(t):.0f} "
+                f"({np.median(t)/np.median(f):.2f}x) relerr {err:.1e}")
+print(mode, " | ".join(line), flush=True)
