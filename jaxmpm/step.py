@@ -33,6 +33,7 @@ from .fusion import always_true, compute_once, scale_rows
 from .model import Collision, Model, Params
 from .precision import compiled_entry, full_precision
 from .state import (
+    GRID_PADDING,
     Grid,
     State,
     Stencil,
@@ -58,6 +59,8 @@ __all__ = [
     "grid_update",
     "apply_grid_colliders",
     "apply_domain_walls",
+    "domain_wall_nodes",
+    "node_tolerance",
     "g2p",
     "advect",
     "step",
@@ -207,6 +210,19 @@ def node_coordinates(grid: Grid, dtype) -> Float[Array, "G D"]:
     return jnp.stack([c.reshape(-1) for c in coords], axis=-1)
 
 
+def node_tolerance(grid: Grid, dtype, reach: float = 0.0) -> float:
+    """How close (metres) to a surface a node counts as on it: ``1e-6 dx``, or 32 rounding
+    units of the node coordinates (and of a surface point ``reach`` metres from the
+    origin) in ``dtype`` where that is more.
+
+    :func:`node_coordinates` rounds: in float32, or in float64 under ``jax.jit`` (which fuses
+    the product and the sum), a node on a plane through a node row lands a few units of
+    the last place on either side of it, and a plain ``<= 1e-6 dx`` test then decided by
+    round-off whether the whole row was inside the collider."""
+    extent = max(abs(o) for o in grid.origin) + max(grid.shape) * grid.dx + abs(reach)
+    return max(1e-6 * grid.dx, 32.0 * float(jnp.finfo(dtype).eps) * extent)
+
+
 def grid_update(
     model: Model,
     params: Params,
@@ -239,7 +255,7 @@ def grid_update(
     v = _ext.grid_velocity(model, params, v)  # extensions: drag (no-op unless enabled)
     nodes = node_coordinates(grid, dtype)
     v = apply_grid_colliders(model, params, nodes, v, time)
-    v = apply_domain_walls(grid, nodes, v)
+    v = apply_domain_walls(grid, v)
     return jnp.where(occupied[:, None], v, 0.0)
 
 
@@ -256,11 +272,13 @@ def apply_grid_colliders(
     for collider, field, cp in zip(model.colliders, model.fields, params["colliders"]):
         if isinstance(collider, Plane):
             sd, normal = collider.signed_distance(nodes, time)
+            reach = float(np.linalg.norm(collider.point))
         elif model.collision == Collision.GRID:
             sd, normal = cpic.node_signed_distance(field, collider, model.grid, nodes, time)
+            reach = 0.0
         else:
             continue
-        inside = sd <= 1e-6 * model.grid.dx
+        inside = sd <= node_tolerance(model.grid, v.dtype, reach)
         projected = project_velocity(
             v,
             normal,
@@ -273,30 +291,42 @@ def apply_grid_colliders(
     return v
 
 
+def domain_wall_nodes(grid: Grid) -> tuple[tuple[Bool[Array, " G"], Bool[Array, " G"]], ...]:
+    """Per axis, the nodes on or below the domain's lower face and those on or beyond its
+    upper face, ``(G,)`` each, decided on node indices (exact, whatever the dtype): the
+    lower face's node is ``GRID_PADDING`` and the first node on or beyond the upper face is
+    ``GRID_PADDING`` from the grid's end (:class:`jaxmpm.state.Grid`)."""
+    walls = []
+    for d in range(grid.dim):
+        index = jax.lax.broadcasted_iota(jnp.int32, grid.shape, d).reshape(-1)
+        walls.append((index <= GRID_PADDING, index >= grid.shape[d] - 1 - GRID_PADDING))
+    return tuple(walls)
+
+
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def apply_domain_walls(grid: Grid, nodes: Float[Array, "G D"], v: Float[Array, "G D"]) -> Float[Array, "G D"]:
-    """Slip walls: nodes on or beyond the domain's faces lose their outward velocity.
+def apply_domain_walls(grid: Grid, v: Float[Array, "G D"]) -> Float[Array, "G D"]:
+    """Slip walls: nodes on or beyond the domain's faces (:func:`domain_wall_nodes`) lose
+    their outward velocity.
 
     The tangent is a select on the primal's signs: JAX's derivative of ``maximum``/``minimum``
     re-derived the primal and a tie rule per tangent entry (the forward-mode grid update cost
     20x the primal one). The value keeps ``maximum``/``minimum``: programs with and without a
     null extension must round alike (``test_each_extension_alone_is_bitwise_null``)."""
     columns = []
-    for d in range(grid.dim):
+    for d, (below, beyond) in enumerate(domain_wall_nodes(grid)):
         vd = v[:, d]
-        vd = jnp.where(nodes[:, d] <= grid.lo[d], jnp.maximum(vd, 0.0), vd)
-        vd = jnp.where(nodes[:, d] >= grid.hi[d], jnp.minimum(vd, 0.0), vd)
+        vd = jnp.where(below, jnp.maximum(vd, 0.0), vd)
+        vd = jnp.where(beyond, jnp.minimum(vd, 0.0), vd)
         columns.append(vd)
     return jnp.stack(columns, axis=-1)
 
 
 @apply_domain_walls.defjvp
 def _domain_walls_jvp(grid: Grid, primals, tangents):
-    nodes, v = primals
-    dv = tangents[1]
-    lo, hi = (jnp.asarray(b, v.dtype) for b in (grid.lo, grid.hi))
-    outward = ((nodes <= lo) & (v < 0.0)) | ((nodes >= hi) & (v > 0.0))
-    return apply_domain_walls(grid, nodes, v), jnp.where(outward, 0.0, dv)
+    (v,), (dv,) = primals, tangents
+    outward = jnp.stack([(below & (v[:, d] < 0.0)) | (beyond & (v[:, d] > 0.0))
+                         for d, (below, beyond) in enumerate(domain_wall_nodes(grid))], axis=-1)
+    return apply_domain_walls(grid, v), jnp.where(outward, 0.0, dv)
 
 
 def g2p(
