@@ -97,9 +97,11 @@ def test_newtonian_column_at_rest_has_hydrostatic_pressure():
 
 def test_elastic_column_rings_at_the_p_wave_period():
     """A confined elastic column on the floor, released under gravity, rings in its quarter-wave
-    mode: period 4 H / c with c = sqrt((lam + 2 mu) / rho) (0.0690 s here). MPM lengthens it at
-    20 cells per column: measured 1.096x (1.061x at 40 cells), so the check is 1.00-1.15x; a
-    wrong modulus (mu alone: 1.32x; 2 mu: 0.76x) falls outside."""
+    mode: period 4 H / c with c = sqrt((lam + 2 mu) / rho) (0.0690 s here). Measured 1.0000x
+    at 20 cells per column (0.995x at 40), so the check is 0.97-1.03x; a wrong modulus (mu
+    alone: 1.32x; 2 mu: 0.76x) falls outside. Before session 50 the column's right wall, on a
+    node row, lost that row to float32 rounding: the column could bulge a cell sideways, and
+    the period came out 1.096x (1.061x at 40 cells), read then as MPM's own lengthening."""
     E, nu = 1e5, 0.3
     scene = load_scene(_column_spec({"model": "elastic", "E": E, "nu": nu}, 160, 1 / 240, 10))
     traj = jax.jit(lambda p: simulate(scene.model, p, checkpoint=None))(scene.params)
@@ -111,7 +113,7 @@ def test_elastic_column_rings_at_the_p_wave_period():
     assert len(crossings) >= 12
     period = 2.0 * (crossings[-1] - crossings[0]) / (len(crossings) - 1)
     modulus = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
-    assert 1.0 < period / (4 * 0.2 / math.sqrt(modulus / 1000.0)) < 1.15
+    assert 0.97 < period / (4 * 0.2 / math.sqrt(modulus / 1000.0)) < 1.03
 
 
 def _surface_slope_degrees(x: np.ndarray, floor: float = 0.0, bins: int = 40) -> float:
