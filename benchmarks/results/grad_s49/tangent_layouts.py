@@ -7,8 +7,9 @@ MODE: ``vmap`` (the package's way: ``jax.vmap`` of ``jax.jvp`` over the k basis 
 ``jax.jvp`` of the step once per group, hoping XLA's CSE shares the repeated primal),
 ``sharedG`` (the same with the primal step written once more beside the groups), ``linvmap`` /
 ``linmap`` (``jax.linearize`` of the rollout, its linear map vmapped / ``lax.map``ped over k),
-``steplinvmap`` / ``steplinloop`` (``jax.linearize`` of each step inside the scan, its linear
-map vmapped over the k tangents / called once per tangent).
+``steplinvmap`` / ``steplinloop`` / ``steplinmap`` (``jax.linearize`` of each step inside the
+scan, its linear map vmapped over the k tangents / called once per tangent / ``lax.map``ped
+over them, added in session 50).
 Prints the forward's and each Jacobian's wall ms (min and median of REPEATS after a compiling
 call), their ratios, and the Jacobian's largest difference from ``vmap``'s.
 """
@@ -112,6 +113,8 @@ def jac_steplin(k, how):
             new_s, f = jax.linearize(lambda st, th: step_of(st, th), s, theta)
             if how == "vmap":
                 new_ts = jax.vmap(f)(ts, basis)
+            elif how == "map":
+                new_ts = jax.lax.map(lambda a: f(*a), (ts, basis))
             else:
                 outs = [f(jax.tree.map(lambda a: a[i], ts), basis[i]) for i in range(k)]
                 new_ts = jax.tree.map(lambda *a: jnp.stack(a), *outs)
