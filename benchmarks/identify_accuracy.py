@@ -66,7 +66,8 @@ def main() -> None:
     ap.add_argument("--min-elevation", type=float, default=15.0,
                     help="the lowest camera's elevation above the collider's top, degrees (0: level with it)")
     ap.add_argument("--degrade", default="clean", choices=DEGRADATIONS)
-    ap.add_argument("--tolerance", type=int, default=0, help="k of the body's visual hull")
+    ap.add_argument("--tolerance", type=int, default=None, help="k of the body's visual hull (default: chosen, "
+                    "as identify does)")
     ap.add_argument("--max-steps", type=int, default=30)
     ap.add_argument("--colliders", default="disks,mesh,true",
                     help="reconstructed (disks, mesh), surfels placed on the true surface (placed-disks: the disk "
@@ -148,7 +149,7 @@ def main() -> None:
             row = {
                 "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
                 "collider_raised_m": args.raise_collider,
-                "tolerance": args.tolerance, "refine": args.refine, "rgb": args.rgb,
+                "tolerance": rec.body_hull.tolerance, "refine": args.refine, "rgb": args.rgb,
                 "collider_rgb": args.collider_rgb, "refine_velocity": args.refine_velocity, "renderer": args.renderer, "num_pixels": args.num_pixels,
                 "views": args.views, "res": args.res, "min_elevation": args.min_elevation, "max_steps": args.max_steps,
                 "truth": truth, "values": {n: float(np.ravel(result.values[n])[0]) for n in names},

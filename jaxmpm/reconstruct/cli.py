@@ -19,7 +19,9 @@ def add_identify_parser(sub, func) -> None:
     p.add_argument("--collider", choices=("mesh", "disks"), default="mesh",
                    help="reconstructed collider the scene uses: the hull mesh (default) or the fitted surfels "
                         "(both are written)")
-    p.add_argument("--tolerance", type=int, default=0, help="k: a hull voxel is kept when >= V-k views see it (default 0)")
+    p.add_argument("--tolerance", type=int, default=None,
+                   help="k: a hull voxel is kept when >= V-k views see it (default: 1 when that matches the first "
+                        "frame's masks better and there are 4 views or more, else 0)")
     p.add_argument("--max-steps", type=int, default=None, help="fit iterations per stage (default: fit's)")
     p.add_argument("--pixels", type=int, default=256, help="pixels rendered per view and frame in the fit")
     p.add_argument("--surfel-steps", type=int, default=80, help="Adam steps of the collider surfel fit")

@@ -6,7 +6,7 @@ A voxel is kept when at least ``V − k`` of the V views see its centre inside t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,12 +22,23 @@ class Hull:
         lo: ``(3,)`` lower corner of the grid, m.
         voxel: voxel edge length, m.
         votes: ``(nx, ny, nz)`` int, how many views see the voxel inside their mask.
+        views: V, the number of views that voted.
+        tolerance: k, how many of them may disagree: ``occupied = votes >= V - k``.
     """
 
     occupied: np.ndarray
     lo: np.ndarray
     voxel: float
     votes: np.ndarray
+    views: int
+    tolerance: int
+
+    def with_tolerance(self, tolerance: int) -> "Hull":
+        """The same votes with another k (no view is projected again)."""
+        if not 0 <= tolerance < self.views:
+            raise ObservationError(f"visual_hull: tolerance k must be in [0, {self.views - 1}] for {self.views} views, "
+                                   f"got {tolerance}")
+        return replace(self, occupied=self.votes >= self.views - tolerance, tolerance=tolerance)
 
     @property
     def volume(self) -> float:
@@ -110,7 +121,7 @@ def visual_hull(
     centers = np.stack([a.reshape(-1) for a in np.meshgrid(*axes, indexing="ij")], axis=-1)
     votes = inside_masks(centers, masks, np.asarray(intrinsics, float), np.asarray(cam_to_world, float)).sum(axis=0)
     votes = votes.reshape(tuple(shape))
-    return Hull(occupied=votes >= V - tolerance, lo=lo, voxel=float(voxel), votes=votes)
+    return Hull(occupied=votes >= V - tolerance, lo=lo, voxel=float(voxel), votes=votes, views=V, tolerance=tolerance)
 
 
 def hull_particles(hull: Hull, spacing: float) -> np.ndarray:
