@@ -201,6 +201,20 @@ def test_body_is_reconstructed_and_reprojects(dataset):
     np.testing.assert_allclose(points.mean(axis=0), x[0].mean(axis=0), atol=0.01)
 
 
+def test_an_empty_first_mask_is_outvoted_by_default(dataset):
+    """One view's first mask empty (a segmentation that missed the body): carving with every
+    view finds nothing and says so; by default the other five carve the body."""
+    folder, x = dataset
+    ds = read_dataset(folder)
+    ds.observation.masks[0, 0] = False
+    spec = scene_skeleton(ds, "newtonian")
+    with pytest.raises(ObservationError, match="visual hull is empty"):
+        reconstruct_body(ds, spec, tolerance=0)
+    points, hull, _ = reconstruct_body(ds, spec)
+    assert hull.tolerance == 1
+    assert len(points) == pytest.approx(len(x[0]), rel=0.3)
+
+
 def test_masks_with_jittered_borders_carve_the_body_with_one_view_allowed_to_disagree(tmp_path):
     """Every mask's border moved 1 or 2 px in or out (``jitter``): the intersection of all six
     views is too small, and letting one view disagree (k = 1) reprojects better, so the default

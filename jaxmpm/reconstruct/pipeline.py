@@ -210,26 +210,23 @@ def reconstruct_body(
     views = obs.masks.shape[0]
     spacing = particle_spacing(spec, ppc)
     voxel = spacing if voxel is None else float(voxel)
+    choices = [0, 1] if tolerance is None and views >= AUTO_TOLERANCE_VIEWS else [tolerance or 0]
     hull = visual_hull(obs.masks[:, 0], obs.intrinsics, obs.cam_to_world, spec["domain"]["lo"], spec["domain"]["hi"],
-                       voxel, tolerance=0 if tolerance is None else tolerance)
-    points = hull_particles(hull, spacing)
-    if len(points) == 0 and not (tolerance is None and views >= AUTO_TOLERANCE_VIEWS):
+                       voxel, tolerance=choices[0])
+    best = None
+    for k in choices:
+        candidate = hull.with_tolerance(k)
+        points = hull_particles(candidate, spacing)
+        if len(points) == 0:
+            continue
+        iou = _first_frame_iou(points, obs, spacing)
+        if best is None or iou.mean() >= best[2].mean() + AUTO_TOLERANCE_GAIN:
+            best = (points, candidate, iou)
+    if best is None:
         raise ObservationError(
             f"{dataset.folder}: the first frame's visual hull is empty: no point of the domain "
-            f"{spec['domain']} is inside {views - hull.tolerance} of the views' masks (check the cameras and masks)"
+            f"{spec['domain']} is inside {views - choices[-1]} of the views' masks (check the cameras and masks)"
         )
-    best = (points, hull, _first_frame_iou(points, obs, spacing) if len(points) else np.zeros(views))
-    if tolerance is None and views >= AUTO_TOLERANCE_VIEWS:
-        looser = hull.with_tolerance(1)
-        points = hull_particles(looser, spacing)
-        if len(points) == 0:
-            raise ObservationError(
-                f"{dataset.folder}: the first frame's visual hull is empty: no point of the domain "
-                f"{spec['domain']} is inside {views - 1} of the views' masks (check the cameras and masks)"
-            )
-        iou = _first_frame_iou(points, obs, spacing)
-        if iou.mean() >= best[2].mean() + AUTO_TOLERANCE_GAIN:
-            best = (points, looser, iou)
     return best
 
 
