@@ -332,7 +332,7 @@ def test_faces_and_planes_on_node_rows_hold_whole_rows_in_every_dtype_jitted_or_
     rounding. Before session 50 both were decided on rounded node coordinates: in float32 the
     upper faces' rows of this grid were not walls, and under ``jax.jit`` in float64 (whose
     fused multiply-adds round otherwise) neither was the floor's; of planes through node rows
-    at dx = 12.5 mm, 16 of 70 heights lost or gained their row in float32."""
+    at dx = 12.5 mm, 17 of 71 heights lost or gained their row in float32."""
     from jaxmpm.state import GRID_PADDING
     from jaxmpm.step import apply_grid_colliders, domain_wall_nodes, node_coordinates
 
