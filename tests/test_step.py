@@ -402,7 +402,7 @@ def test_the_transfers_alone_take_a_fixed_share_of_kinetic_energy_per_step_whate
 def test_a_water_column_collapses_alike_in_float32_and_float64():
     """What a user sees of the walls' rounding: a 2D dam break (a 0.4 m water column on a
     floor at a domain face, 80 substeps a frame) follows the same path in float32 and float64.
-    Measured after 0.1 s: particles at most 6e-7 m apart; before session 50 the float64 run
+    Measured after 0.1 s: particles under 1e-6 m apart; before session 50 the float64 run
     (jitted: the floor's node row was not a wall) was 36 mm ahead."""
     spec = _dam_break_spec(80, 6)
     runs = [np.asarray(simulate(scene.model, scene.params).x, np.float64)
@@ -416,7 +416,7 @@ def test_a_water_column_collapses_alike_in_float32_and_float64():
 def test_sand_lands_on_a_box_alike_in_float32_and_float64(dim, collision):
     """A sand block dropped onto a box collider (friction contact, a slip floor below) follows
     the same path in both precisions in every collision mode: nothing decides on rounding.
-    Measured over 8 frames: at most 2e-5 dx apart in 2D and 7e-5 dx in 3D."""
+    Measured over 8 frames: at most 2e-5 dx apart in 2D and 5e-5 dx in 3D."""
     sand = {"model": "sand", "friction_angle": 30.0, "E": 1e5, "nu": 0.3}
     spec = block_spec(dim, sand, dx=0.05, frames=8, substeps=40, lo=[0.4, 0.45, 0.4][:dim], hi=[0.6, 0.6, 0.6][:dim],
                       floor={"point": [0.0] * dim, "normal": [0.0, 1.0, 0.0][:dim], "contact": "slip"})
