@@ -5,7 +5,7 @@ does not converge as dt falls.
     python benchmarks/transfer_dissipation.py --case-study-3d [--dx 0.05]
 
 A 2D dam break (a 0.4 m water column, PAC-NeRF's Newtonian fluid with water's viscosity, a
-weakly compressible bulk modulus for a sound speed of 6 Ritter front speeds) is run for 0.2 s
+weakly compressible bulk modulus with sqrt(kappa / rho) = 6 sqrt(g h)) is run for 0.2 s
 at 80 substeps a frame. From that state the script takes 10 steps at dt = 2.5e-4 ... 2.5e-8 s
 and reports the kinetic energy (APIC's: ``m |v|^2 / 2`` plus the affine part
 ``m (dx^2 / 4) |C|^2 / 2``) each step adds. As dt -> 0 the physics' share vanishes and what
