@@ -35,9 +35,7 @@ class Hull:
 
     def with_tolerance(self, tolerance: int) -> "Hull":
         """The same votes with another k (no view is projected again)."""
-        if not 0 <= tolerance < self.views:
-            raise ObservationError(f"visual_hull: tolerance k must be in [0, {self.views - 1}] for {self.views} views, "
-                                   f"got {tolerance}")
+        _check_tolerance(tolerance, self.views)
         return replace(self, occupied=self.votes >= self.views - tolerance, tolerance=tolerance)
 
     @property
@@ -57,6 +55,11 @@ class Hull:
         out = np.zeros(len(idx), bool)
         out[ok] = self.occupied[tuple(idx[ok].T)]
         return out
+
+
+def _check_tolerance(tolerance: int, views: int) -> None:
+    if not 0 <= tolerance < views:
+        raise ObservationError(f"visual_hull: tolerance k must be in [0, {views - 1}] for {views} views, got {tolerance}")
 
 
 def inside_masks(points: np.ndarray, masks: np.ndarray, intrinsics: np.ndarray, cam_to_world: np.ndarray) -> np.ndarray:
@@ -111,8 +114,7 @@ def visual_hull(
     V = masks.shape[0]
     if np.shape(intrinsics) != (V, 3, 3) or np.shape(cam_to_world) != (V, 4, 4):
         raise ObservationError(f"visual_hull: need {V} cameras, got intrinsics {np.shape(intrinsics)} and poses {np.shape(cam_to_world)}")
-    if not 0 <= tolerance < V:
-        raise ObservationError(f"visual_hull: tolerance k must be in [0, {V - 1}] for {V} views, got {tolerance}")
+    _check_tolerance(tolerance, V)
     if not voxel > 0:
         raise ObservationError(f"visual_hull: voxel must be positive, got {voxel}")
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)

@@ -28,7 +28,7 @@ from ..errors import ObservationError
 from ..fit_report import format_value
 from ..identify.residuals import frames_needed, observation_cameras
 from ..render import tile_views
-from .calibration import ViewOffsets, check_cameras
+from .calibration import MIN_IOU_GAIN, ViewOffsets, check_cameras
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
 from .free_fall import FreeFall, free_fall
@@ -174,9 +174,9 @@ def particle_spacing(spec: dict, ppc: int) -> float:
 
 #: Views needed before :func:`reconstruct_body` tries a hull that lets one view disagree.
 AUTO_TOLERANCE_VIEWS = 4
-#: First-frame mean IoU a hull with k = 1 must gain over k = 0 to be used (the cameras' check's
-#: threshold for a view's offset, :data:`jaxmpm.reconstruct.calibration.MIN_IOU_GAIN`).
-AUTO_TOLERANCE_GAIN = 0.01
+#: First-frame mean IoU a hull with k = 1 must gain over k = 0 to be used: the gain the cameras'
+#: check asks of a view's offset.
+AUTO_TOLERANCE_GAIN = MIN_IOU_GAIN
 
 
 def reconstruct_body(
