@@ -49,6 +49,7 @@ def print_table(rows: list[dict]) -> None:
 
 def main() -> None:
     from jaxmpm.bench_sysid import FIT_NAMES, errors
+    from jaxmpm.fit import REFINE_VELOCITY
     from jaxmpm.identify.parameters import with_values
     from jaxmpm.reconstruct import check_cameras, read_dataset, reconstruct, scene_skeleton, silhouette_iou, write_scene
     from jaxmpm.reconstruct.collider import chamfer_distance
@@ -77,7 +78,9 @@ def main() -> None:
     ap.add_argument("--refine", type=int, default=0, help="Adam steps of the first-frame refinement (0: none)")
     ap.add_argument("--rgb", type=float, default=0.0, help="weight of the masked-RGB term in the fit")
     ap.add_argument("--collider-rgb", type=float, default=0.0, help="weight of the plates' colours in the surfel fit")
-    ap.add_argument("--refine-velocity", action="store_true", help="refit the velocity with the material")
+    ap.add_argument("--refine-velocity", nargs="?", choices=("auto", "yes", "no"), default="auto", const="yes",
+                    help="refit the velocity with the material (auto, the default: as identify, when the masks are "
+                         "noisy)")
     ap.add_argument("--offset", action="store_true", help="fit the body's offset with its velocity")
     ap.add_argument("--at-truth", action="store_true",
                     help="also simulate the reconstructed scene with the true parameters and velocity and report its "
@@ -142,7 +145,7 @@ def main() -> None:
             result = identify_material(scene, obs, names + ["velocity"] + (["offset"] if args.offset else []),
                                        max_steps=args.max_steps,
                                        renderer=args.renderer, num_pixels=args.num_pixels, rgb=args.rgb,
-                                       refine_velocity=args.refine_velocity)
+                                       refine_velocity=REFINE_VELOCITY[args.refine_velocity])
             evaluation_notes: list[str] = []
             iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps, notes=evaluation_notes),
                                  obs.masks)

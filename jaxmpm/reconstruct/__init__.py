@@ -13,6 +13,7 @@ from .collider import roof_height as roof_height
 from .dataset import Dataset as Dataset
 from .dataset import read_dataset as read_dataset
 from .dataset import read_hint as read_hint
+from .free_fall import AREA_NOISE_LIMIT as AREA_NOISE_LIMIT
 from .free_fall import FreeFall as FreeFall
 from .free_fall import free_fall as free_fall
 from .hull import Hull as Hull

@@ -32,9 +32,10 @@ def add_identify_parser(sub, func) -> None:
                    help="weight of the masked-RGB term in the fit, beside the silhouettes' 1 (default 0)")
     p.add_argument("--collider-rgb", type=float, default=0.0, metavar="WEIGHT",
                    help="weight of the background plates' colours in the collider surfel fit (default 0: masks only)")
-    p.add_argument("--refine-velocity", action="store_true",
-                   help="refit the initial velocity with the material after the pre-contact stage (default: "
-                        "keep the pre-contact estimate)")
+    p.add_argument("--refine-velocity", nargs="?", choices=("auto", "yes", "no"), default="auto", const="yes",  # fit.REFINE_VELOCITY
+                   help="refit the initial velocity with the material after the pre-contact stage: yes (the flag "
+                        "alone), no (keep the pre-contact estimate), auto (default: no, unless the masks' areas jump "
+                        "from frame to frame by more than 10 %%)")
     p.add_argument("--recalibrate-views", action="store_true",
                    help="move the principal point of every view whose masks sit 1 px or more off the other views' "
                         "visual hull by that offset (default: only warn; the check runs on 3 views or more)")
@@ -46,6 +47,7 @@ def run_identify(args) -> int:
     """Run :func:`jaxmpm.reconstruct.identify` with a progress bar per stage; print the table."""
     from tqdm.auto import tqdm
 
+    from ..fit import REFINE_VELOCITY
     from .pipeline import identify
 
     out = Path(args.out)
@@ -76,7 +78,7 @@ def run_identify(args) -> int:
         res = identify(args.dataset, args.material, out, params=names, hint=args.hint, tolerance=args.tolerance,
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
                        surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
-                       collider_rgb=args.collider_rgb, refine_velocity=args.refine_velocity,
+                       collider_rgb=args.collider_rgb, refine_velocity=REFINE_VELOCITY[args.refine_velocity],
                        recalibrate_views=args.recalibrate_views, video=not args.no_video,
                        stage=stage, progress=progress, warn=warn)
     finally:

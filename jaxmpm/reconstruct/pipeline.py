@@ -31,7 +31,7 @@ from ..render import tile_views
 from .calibration import MIN_IOU_GAIN, ViewOffsets, check_cameras
 from .collider import Surfels, fit_surfels, hull_mesh, roof_height
 from .dataset import Dataset, read_dataset
-from .free_fall import FreeFall, free_fall
+from .free_fall import AREA_NOISE_LIMIT, FreeFall, free_fall
 from .hull import Hull, hull_particles, silhouette_iou, visual_hull
 from .refine import BodyRefinement, refine_body
 
@@ -439,8 +439,17 @@ def _check_rgb_weight(rgb: float, images, what: str = "an RGB weight needs the f
         raise ObservationError(what)
 
 
+def mask_area_noise(observation, dx: float) -> float:
+    """Robust σ of the body's silhouette areas from frame to frame (relative;
+    :func:`jaxmpm.reconstruct.free_fall.area_noise`, distance-corrected as the free fall's shape
+    test) of an observation with 3D masks, cameras and at least 3 frames; NaN otherwise."""
+    if observation.masks is None or observation.intrinsics is None or len(observation.times) < 3:
+        return float("nan")
+    return free_fall(observation.masks, observation_cameras(observation), np.asarray(observation.times), dx).area_noise
+
+
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
-                      renderer: str = RENDERER, rgb: float = 0.0, colors="auto", refine_velocity: bool = False,
+                      renderer: str = RENDERER, rgb: float = 0.0, colors="auto", refine_velocity: bool | None = None,
                       progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
@@ -459,18 +468,34 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     particle's mean colour in the first frame's views, :func:`jaxmpm.identify.particle_colors`).
 
     ``refine_velocity``: refit the velocity with the material in the stages after the
-    pre-contact one (:attr:`jaxmpm.FitConfig.refine_velocity`). By default (False, unlike
-    ``fit``'s automatic choice) the velocity stays where the pre-contact frames put it: a
+    pre-contact one (:attr:`jaxmpm.FitConfig.refine_velocity`). None (default, unlike
+    ``fit``'s automatic choice): held where the pre-contact frames put it, except where the
+    masks' areas jump from frame to frame by more than
+    :data:`jaxmpm.reconstruct.free_fall.AREA_NOISE_LIMIT` (:func:`mask_area_noise`): a
     reconstructed body's shape errors would pass into a refitted velocity (on clean views μ
     0.0003 → 0.036 decades), while an error in the held velocity is absorbed by the material
-    (on blurred views μ 0.15 → 0.015 refitted; docs/identify.md §4)."""
+    (on blurred views μ 0.15 → 0.015 refitted), and with borders that move 1–2 px from frame
+    to frame the pre-contact frames put it 0.24 m/s off (the jittered bunny, μ 0.20 held,
+    0.096 refitted; docs/identify.md §4). A note says when it is refitted for that reason."""
     from ..fit import SCAN_DECADES, FitConfig, fit
 
     _check_rgb_weight(rgb, observation.images)
+    note = None
+    if refine_velocity is None:
+        noise = mask_area_noise(observation, float(scene.model.grid.dx))
+        refine_velocity = bool(noise > AREA_NOISE_LIMIT)
+        if refine_velocity:
+            note = (f"the masks' areas jump by {100 * noise:.0f} % (σ) from frame to frame: the velocity is refitted "
+                    "with the material (the pre-contact frames alone pin it only to their borders' noise)")
+            if log is not None:
+                log(note)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
                        weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors,
                        refine_velocity=bool(refine_velocity))
-    return fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
+    result = fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
+    if note is not None:
+        result.notes.insert(0, note)
+    return result
 
 
 #: How often :func:`simulated_masks` may halve dt when the rollout is unhealthy (as ``fit``'s
@@ -639,6 +664,10 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
     fall = recon.free_fall
     if fall is not None:
         lines.append(f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)")
+        if not fall.shape_tested:
+            lines.append(f"- the masks' areas jump by {100 * fall.area_noise:.0f} % (σ) from frame to frame, too much to "
+                         "tell contact by the silhouettes' size: the free fall is the frames whose centres follow the "
+                         f"parabola of the scene's gravity {recon.spec['gravity']} m/s², and gravity is not measured")
         if fall.velocity is not None:
             lines.append("- initial velocity from the free fall (the fit's starting guess): "
                          + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
@@ -680,7 +709,7 @@ def identify(
     refine: int = 0,
     rgb: float = 0.0,
     collider_rgb: float = 0.0,
-    refine_velocity: bool = False,
+    refine_velocity: bool | None = None,
     recalibrate_views: bool = False,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
