@@ -67,6 +67,7 @@ def main() -> None:
     ap.add_argument("--min-elevation", type=float, default=15.0,
                     help="the lowest camera's elevation above the collider's top, degrees (0: level with it)")
     ap.add_argument("--degrade", default="clean", choices=DEGRADATIONS)
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the degradation (jitter)")
     ap.add_argument("--tolerance", type=int, default=None, help="k of the body's visual hull (default: chosen, "
                     "as identify does)")
     ap.add_argument("--max-steps", type=int, default=30)
@@ -122,7 +123,8 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         folder, _ = render_drop_dataset(Path(tmp) / "ds", views=args.views, res=args.res, min_elevation_deg=args.min_elevation,
-                                 material=args.material, collider=args.collider, degradation=args.degrade)
+                                 material=args.material, collider=args.collider, degradation=args.degrade,
+                                        seed=args.seed)
         ds = read_dataset(folder)
         domain = scene_skeleton(ds, args.material)["domain"]
         ds, offsets = check_cameras(ds, domain["lo"], domain["hi"], recalibrate=args.recalibrate_views)
@@ -150,7 +152,7 @@ def main() -> None:
             iou = silhouette_iou(simulated_masks(scene, result.params, obs, result.substeps, notes=evaluation_notes),
                                  obs.masks)
             row = {
-                "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade,
+                "material": args.material, "collider_shape": args.collider, "collider": kind, "degrade": args.degrade, "seed": args.seed,
                 "collider_raised_m": args.raise_collider,
                 "tolerance": rec.body_hull.tolerance, "refine": args.refine, "rgb": args.rgb,
                 "collider_rgb": args.collider_rgb, "refine_velocity": args.refine_velocity, "renderer": args.renderer, "num_pixels": args.num_pixels,

@@ -261,13 +261,14 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: 
 
 def render_drop_dataset(folder: str | os.PathLike, views: int = 4, res: int = 48, frames: int = 6,
                         hint: bool = True, min_elevation_deg: float = 15.0, material: str = "newtonian",
-                        collider: str = "box", degradation: str = "clean") -> tuple[Path, np.ndarray]:
+                        collider: str = "box", degradation: str = "clean", seed: int = 0) -> tuple[Path, np.ndarray]:
     """Simulate :func:`drop_scene`, render it with surfels from :func:`drop_cameras` in front
     of a plate (white, or :func:`backdrop` blotches for ``dark``, with the painted collider
     of :func:`collider_layer`), :func:`degrade` it and write a PAC-NeRF folder (frames,
     plates, ``c_`` collider masks) with,
     when ``hint``, a ``scene_hint.toml`` holding what a person knows: dx, the frame rate,
-    substeps, the domain and the floor (not the collider, not the material).
+    substeps, the domain and the floor (not the collider, not the material). ``seed``: the
+    random seed of the degradation (:func:`degrade`).
 
     Returns:
         ``(folder, x)``: the folder and the true positions ``(T, N, 3)`` (m).
@@ -296,7 +297,7 @@ def render_drop_dataset(folder: str | os.PathLike, views: int = 4, res: int = 48
     images = np.round(m * r["images"] + (1.0 - m) * plate[:, None]).astype(np.uint8)
     obs = Observation(times=np.asarray(traj.times), masks=r["masks"], images=images, intrinsics=r["intrinsics"],
                       cam_to_world=r["cam_to_world"])
-    obs, plate, cmasks, alpha = degrade(obs, np.round(plate).astype(np.uint8), cmasks, degradation)
+    obs, plate, cmasks, alpha = degrade(obs, np.round(plate).astype(np.uint8), cmasks, degradation, seed=seed)
     folder = save_pacnerf(folder, obs, background=plate, collider_masks=cmasks, alpha=alpha)
     if hint:
         known = {k: spec[k] for k in ("dx", "frame_dt", "substeps", "domain")}
