@@ -603,6 +603,7 @@ def test_identify_material_refits_the_velocity_with_the_material_when_asked_or_w
 
     from jaxmpm.fit import SCAN_DECADES
     from jaxmpm.reconstruct.pipeline import identify_material, mask_area_noise
+    from jaxmpm.reconstruct.synthetic import jitter_masks
 
     seen = {}
 
@@ -613,7 +614,7 @@ def test_identify_material_refits_the_velocity_with_the_material_when_asked_or_w
     monkeypatch.setattr(importlib.import_module("jaxmpm.fit"), "fit", fake_fit)  # the module, not jaxmpm.fit()
     obs = read_dataset(dataset[0]).observation
     if masks == "jittered":
-        obs = dataclasses.replace(obs, masks=np.where(_jittered(np.asarray(obs.masks) > 0), 255, 0).astype(np.uint8))
+        obs = dataclasses.replace(obs, masks=jitter_masks(obs.masks))
     scene = types.SimpleNamespace(model=types.SimpleNamespace(grid=types.SimpleNamespace(dx=0.05)), params=None)
     result = identify_material(scene, obs, ["mu", "velocity"], refine_velocity=refine_velocity)
     assert seen["config"].refine_velocity is refit and seen["config"].scan == SCAN_DECADES
@@ -704,20 +705,6 @@ def test_two_free_fall_frames_give_the_velocity_corrected_by_the_prior_gravity()
     assert np.abs(free_fall(masks, cams, times, dx=0.05).velocity - v0).max() > 0.15
 
 
-def _jittered(masks, seed=0):
-    """Every silhouette's border moved 1 or 2 px out or in, at random per view and frame (as
-    the drop datasets' ``jitter`` degradation)."""
-    from scipy.ndimage import binary_dilation, binary_erosion
-
-    rng = np.random.default_rng(seed)
-    out = masks.copy()
-    for v in range(masks.shape[0]):
-        for t in range(masks.shape[1]):
-            op = binary_dilation if rng.random() < 0.5 else binary_erosion
-            out[v, t] = op(masks[v, t], iterations=int(rng.integers(1, 3)))
-    return out
-
-
 @pytest.mark.parametrize("contact", [2, 5])
 def test_jittered_masks_leave_the_free_fall_to_the_prior_gravitys_parabola(contact):
     """Borders jittered by 1-2 px change a 10 px sphere's silhouette areas by ~45 % (σ) from
@@ -725,11 +712,12 @@ def test_jittered_masks_leave_the_free_fall_to_the_prior_gravitys_parabola(conta
     (it did until session 51). With the prior gravity the centres decide: the free fall ends
     at the contact, and the velocity is found (measured 2-6 mm/s off)."""
     from jaxmpm.reconstruct import AREA_NOISE_LIMIT, free_fall
+    from jaxmpm.reconstruct.synthetic import jitter_masks
 
     masks, cams, times, g, v0, _ = _falling_sphere(contact=contact)
     clean = free_fall(masks, cams, times, dx=0.05, gravity=g)
     assert clean.shape_tested and clean.area_noise < 0.2 * AREA_NOISE_LIMIT
-    jittered = _jittered(masks)
+    jittered = jitter_masks(masks)
     fall = free_fall(jittered, cams, times, dx=0.05, gravity=g)
     assert not fall.shape_tested and fall.area_noise > 3 * AREA_NOISE_LIMIT
     assert fall.frames == contact and fall.gravity is None  # g is not measured: the frames were chosen with it

@@ -32,7 +32,8 @@ def add_identify_parser(sub, func) -> None:
                    help="weight of the masked-RGB term in the fit, beside the silhouettes' 1 (default 0)")
     p.add_argument("--collider-rgb", type=float, default=0.0, metavar="WEIGHT",
                    help="weight of the background plates' colours in the collider surfel fit (default 0: masks only)")
-    p.add_argument("--refine-velocity", nargs="?", choices=("auto", "yes", "no"), default="auto", const="yes",  # fit.REFINE_VELOCITY
+    # the choices are fit.REFINE_VELOCITY's keys (not imported here: the CLI starts without jaxmpm.fit)
+    p.add_argument("--refine-velocity", nargs="?", choices=("auto", "yes", "no"), default="auto", const="yes",
                    help="refit the initial velocity with the material after the pre-contact stage: yes (the flag "
                         "alone), no (keep the pre-contact estimate), auto (default: no, unless the masks' areas jump "
                         "from frame to frame by more than 10 %%)")

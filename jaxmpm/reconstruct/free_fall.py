@@ -40,8 +40,8 @@ import numpy as np
 
 from ..errors import ObservationError
 
-__all__ = ["FreeFall", "FREE_FALL_TOLERANCE", "SHAPE_TOLERANCE", "AREA_NOISE_LIMIT", "area_noise", "silhouette_rays", "triangulate",
-           "free_fall"]
+__all__ = ["FreeFall", "FREE_FALL_TOLERANCE", "SHAPE_TOLERANCE", "AREA_NOISE_LIMIT", "area_noise", "silhouette_rays",
+           "triangulate", "free_fall"]
 
 #: RMS residual (in cells of the scene's dx) below which frames count as free fall.
 FREE_FALL_TOLERANCE = 0.1
@@ -74,7 +74,8 @@ class FreeFall:
         area_noise: robust σ of the silhouettes' relative area from frame to frame
             (:func:`area_noise`; NaN with fewer than 3 frames).
         shape_tested: whether the shape test decided the free fall; False where the masks'
-            area noise exceeds the shape tolerance and a prior gravity's parabola decided it.
+            area noise exceeds :data:`AREA_NOISE_LIMIT` and the prior gravity's parabola
+            decided it.
     """
 
     centres: np.ndarray

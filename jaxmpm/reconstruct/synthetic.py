@@ -23,6 +23,7 @@ __all__ = [
     "SUBSTEPS",
     "COLLIDERS",
     "DEGRADATIONS",
+    "jitter_masks",
     "drop_scene",
     "drop_cameras",
     "collider_mesh",
@@ -208,6 +209,21 @@ def backdrop(views: int, height: int, width: int, kind: str, rng) -> np.ndarray:
     return np.clip((texture - texture.mean()) * 4 + 130, 0, 255)
 
 
+def jitter_masks(masks: np.ndarray, seed: int = 0) -> np.ndarray:
+    """``masks (V, T, H, W)`` (bool, or uint8 0/255) with every silhouette's border moved 1 or 2
+    px out or in, at random per view and frame (``degrade``'s ``jitter``); same dtype."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    rng = np.random.default_rng(seed)
+    out = np.asarray(masks).copy()
+    for v in range(out.shape[0]):
+        for t in range(out.shape[1]):
+            op = binary_dilation if rng.random() < 0.5 else binary_erosion
+            moved = op(out[v, t] > 0, iterations=int(rng.integers(1, 3)))
+            out[v, t] = moved if out.dtype == bool else np.where(moved, 255, 0)
+    return out
+
+
 def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: int = 0):
     """What real footage does to a rendered dataset:
 
@@ -229,18 +245,14 @@ def degrade(obs, plate: np.ndarray, cmasks: np.ndarray | None, kind: str, seed: 
     Returns:
         ``(obs, plate, cmasks, alpha)``: degraded copies and whether to write the masks as alpha.
     """
-    from scipy.ndimage import binary_dilation, binary_erosion, gaussian_filter
+    from scipy.ndimage import gaussian_filter
 
     if kind not in DEGRADATIONS:
         raise ValueError(f"unknown degradation {kind!r}; one of {DEGRADATIONS}")
-    rng = np.random.default_rng(seed)
     masks, images = obs.masks.copy(), obs.images.copy()
     alpha = True
     if kind == "jitter":
-        for v in range(masks.shape[0]):
-            for t in range(masks.shape[1]):
-                op = binary_dilation if rng.random() < 0.5 else binary_erosion
-                masks[v, t] = np.where(op(masks[v, t] > 0, iterations=int(rng.integers(1, 3))), 255, 0)
+        masks = jitter_masks(masks, seed)
     elif kind == "shift":
         masks[0], images[0] = np.roll(masks[0], 3, axis=-1), np.roll(images[0], 3, axis=-2)
         if cmasks is not None:
