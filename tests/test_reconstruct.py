@@ -724,6 +724,15 @@ def test_jittered_masks_leave_the_free_fall_to_the_prior_gravitys_parabola(conta
     np.testing.assert_allclose(fall.velocity, v0, atol=0.015)
     without_prior = free_fall(jittered, cams, times, dx=0.05)  # nothing stands in for the shape test
     assert without_prior.shape_tested and without_prior.frames == 1 and without_prior.velocity is None
+    # report.md says how the free fall was decided, and only where the shape test was left out
+    from jaxmpm.reconstruct.pipeline import free_fall_lines
+
+    said = free_fall_lines(fall, g.tolist())
+    assert said[0] == f"- free fall: {contact} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)"
+    assert said[1].startswith(f"- the masks' areas jump by {100 * fall.area_noise:.0f} % (σ) from frame to frame")
+    assert f"parabola of the scene's gravity {g.tolist()} m/s², and gravity is not measured" in said[1]
+    assert said[2].startswith("- initial velocity from the free fall") and len(said) == 3
+    assert not any("jump by" in line for line in free_fall_lines(clean, g.tolist()))
 
 
 def test_free_fall_of_a_body_resting_from_the_start_has_no_gravity():

@@ -661,22 +661,30 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
         lines.append(f"- the lowest view is {theta:.1f}° above the collider's top, so its top may stand up to "
                      f"{1e3 * h:.0f} mm above the true one (a visual hull cannot carve a flat top that no view sees "
                      "edge-on; a view level with the top removes this)")
-    fall = recon.free_fall
-    if fall is not None:
-        lines.append(f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)")
-        if not fall.shape_tested:
-            lines.append(f"- the masks' areas jump by {100 * fall.area_noise:.0f} % (σ) from frame to frame, too much to "
-                         "tell contact by the silhouettes' size: the free fall is the frames whose centres follow the "
-                         f"parabola of the scene's gravity {recon.spec['gravity']} m/s², and gravity is not measured")
-        if fall.velocity is not None:
-            lines.append("- initial velocity from the free fall (the fit's starting guess): "
-                         + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
-        if fall.gravity is not None:
-            used = fall.frames >= GRAVITY_FRAMES and recon.spec["gravity"] == [float(g) for g in fall.gravity]
-            lines.append("- gravity from the free fall: " + ", ".join(f"{g:.2f}" for g in fall.gravity)
-                         + f" m/s² (|g| = {np.linalg.norm(fall.gravity):.2f}); "
-                         + ("used by the scene" if used else f"not used (the scene's: {recon.spec['gravity']})"))
+    if recon.free_fall is not None:
+        lines += free_fall_lines(recon.free_fall, recon.spec["gravity"])
     path.write_text("\n".join(lines) + "\n")
+
+
+def free_fall_lines(fall: FreeFall, scene_gravity: list[float]) -> list[str]:
+    """``report.md``'s lines on the free fall (:func:`jaxmpm.reconstruct.free_fall.free_fall`)
+    of a scene whose gravity is ``scene_gravity`` (m/s²): its frames, how they were decided
+    where the masks are too noisy for the shape test, the velocity, and the gravity measured
+    and whether the scene uses it."""
+    lines = [f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)"]
+    if not fall.shape_tested:
+        lines.append(f"- the masks' areas jump by {100 * fall.area_noise:.0f} % (σ) from frame to frame, too much to "
+                     "tell contact by the silhouettes' size: the free fall is the frames whose centres follow the "
+                     f"parabola of the scene's gravity {scene_gravity} m/s², and gravity is not measured")
+    if fall.velocity is not None:
+        lines.append("- initial velocity from the free fall (the fit's starting guess): "
+                     + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
+    if fall.gravity is not None:
+        used = fall.frames >= GRAVITY_FRAMES and list(scene_gravity) == [float(g) for g in fall.gravity]
+        lines.append("- gravity from the free fall: " + ", ".join(f"{g:.2f}" for g in fall.gravity)
+                     + f" m/s² (|g| = {np.linalg.norm(fall.gravity):.2f}); "
+                     + ("used by the scene" if used else f"not used (the scene's: {scene_gravity})"))
+    return lines
 
 
 @dataclass
