@@ -25,7 +25,10 @@ two either way at a low resolution: σ ≈ 0.45 measured on the 96 px drop datas
 in for it: a frame joins while its centre lies within the tolerance of where the parabola with
 the prior's ``g`` through the frames before it (``c0`` and ``v0`` fitted) puts it, so a third
 frame is already tested; ``g`` is not measured (the frames were chosen with it). A body that
-lands is stopped by the collider, which that parabola does not bend to.
+lands is stopped by the collider, which that parabola does not bend to. One case it gets
+wrong: a body resting on a collider from the start fails at the third frame and is given the
+two-frame velocity ``−g Δt / 2`` (0.2 m/s upwards at 24 fps; with clean masks the free ``g``
+parabola finds it at rest); the identification refits the velocity on such masks.
 
 The centroid of a silhouette is the projection of the body's centre only for a convex body
 seen from afar; the error is the same in every frame while the body keeps its shape (free
