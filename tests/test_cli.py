@@ -360,3 +360,25 @@ def test_fit_choice_reaches_the_fit(simulated, monkeypatch, flag, choice, value)
         main(argv + ([] if choice is None else [f"{flag}={choice}"]))
     field = flag.lstrip("-").replace("-", "_")
     assert getattr(seen["config"], field) == value and type(getattr(seen["config"], field)) is type(value)
+
+
+@pytest.mark.parametrize("args, value", [([], None), (["--refine-velocity"], True), (["--refine-velocity", "yes"], True),
+                                         (["--refine-velocity=no"], False), (["--refine-velocity", "auto"], None)])
+def test_identify_refine_velocity_choice_reaches_identify(tmp_path, monkeypatch, args, value):
+    """``jaxmpm identify --refine-velocity [auto|yes|no]``: absent or ``auto`` lets identify
+    decide from the masks' noise (None), the bare flag still means yes (as before session 51)."""
+    import jaxmpm.reconstruct.pipeline as pipeline
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_identify(*a, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(pipeline, "identify", fake_identify)
+    with pytest.raises(Stop):
+        main(["identify", str(tmp_path), "--material", "newtonian", "--out", str(tmp_path / "out")] + args)
+    assert seen["refine_velocity"] is value
