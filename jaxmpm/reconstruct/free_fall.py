@@ -216,7 +216,6 @@ def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, gravity=
     limit = tolerance * dx
     t0 = times - times[0]
     frames, residual = min(n_valid, 2), 0.0
-    known_g = None if shape_tested else prior  # the parabola's g: free, or the prior's
     if n_valid >= 3 and shape_tested:  # a parabola with a free g has no redundancy below 4 frames
         frames = 3
         while frames < n_valid:
@@ -225,18 +224,16 @@ def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, gravity=
                 break
             frames = frames + 1
     while not shape_tested and 2 <= frames < n_valid:  # the next centre where the prior's parabola puts it?
-        c0, v0 = _parabola(t0[:frames], centres[:frames], known_g)[0]
-        if np.linalg.norm(c0 + v0 * t0[frames] + 0.5 * known_g * t0[frames] ** 2 - centres[frames]) > limit:
+        c0, v0 = _parabola(t0[:frames], centres[:frames], prior)[0]
+        if np.linalg.norm(c0 + v0 * t0[frames] + 0.5 * prior * t0[frames] ** 2 - centres[frames]) > limit:
             break
         frames = frames + 1
     velocity = g = None
-    if frames >= 3 or (frames == 2 and not shape_tested):
-        coef, residual = _parabola(t0[:frames], centres[:frames], known_g)
-        velocity, g = coef[1], (coef[2] if shape_tested else None)
-    elif frames == 2:
-        dt = t0[1]
-        velocity = (centres[1] - centres[0]) / dt
-        if prior is not None:
-            velocity = velocity - 0.5 * prior * dt
+    if frames >= 3 and shape_tested:  # g measured
+        coef, residual = _parabola(t0[:frames], centres[:frames])
+        velocity, g = coef[1], coef[2]
+    elif frames >= 2:  # g known: the prior's (from 2 frames v0 = Δc/Δt − g Δt/2), or none given
+        coef, residual = _parabola(t0[:frames], centres[:frames], np.zeros(3) if prior is None else prior)
+        velocity = coef[1]
     return FreeFall(centres=centres, spread=spread, size_change=size_change, frames=frames, velocity=velocity,
                     gravity=g, residual=float(residual), area_noise=noise, shape_tested=shape_tested)
