@@ -324,8 +324,14 @@ def apply_domain_walls(grid: Grid, v: Float[Array, "G D"]) -> Float[Array, "G D"
 @apply_domain_walls.defjvp
 def _domain_walls_jvp(grid: Grid, primals, tangents):
     (v,), (dv,) = primals, tangents
-    outward = jnp.stack([(below & (v[:, d] < 0.0)) | (beyond & (v[:, d] > 0.0))
-                         for d, (below, beyond) in enumerate(domain_wall_nodes(grid))], axis=-1)
+
+    def outward_mask(v):
+        return jnp.stack([(below & (v[:, d] < 0.0)) | (beyond & (v[:, d] > 0.0))
+                          for d, (below, beyond) in enumerate(domain_wall_nodes(grid))], axis=-1)
+
+    # stored once: XLA otherwise fuses the mask, and the primal velocity it reads, into the
+    # tangent's select and re-derives both per tangent entry
+    outward = compute_once(outward_mask, v, token=always_true(v))
     return apply_domain_walls(grid, v), jnp.where(outward, 0.0, dv)
 
 
