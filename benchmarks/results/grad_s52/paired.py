@@ -3,7 +3,7 @@ process (session 52): the host is shared, and runs of separate processes drifted
 
     git show BASE:jaxmpm/step.py > jaxmpm/_step_orig.py     # the variant to compare against
     python benchmarks/results/grad_s52/paired.py STEPS ROUNDS KS NAMES
-    # e.g. 20 16 1,6 apply_domain_walls; k = 0 times the forward; delete jaxmpm/_step_orig.py after
+    # e.g. 20 16 1,6 apply_domain_walls; k = 0 times the forward, k = -1 the reverse-mode gradient; delete jaxmpm/_step_orig.py after
 
 Both variants are compiled before any timing; each round times every program once, the order
 reversed every other round; the figure is the median over rounds of new/orig in the same round.
@@ -20,7 +20,12 @@ final_x, theta0 = grad_problem(25000, 64, steps)
 def build(k, variant):
     for n in names: setattr(S, n, variant[n])
     basis = jnp.eye(6, dtype=theta0.dtype)[:k]
-    f = jax.jit(lambda th: final_x(th)) if k == 0 else jax.jit(lambda th: jax.vmap(lambda t: jax.jvp(final_x, (th,), (t,))[1])(basis))
+    if k == 0:
+        f = jax.jit(lambda th: final_x(th))
+    elif k < 0:  # reverse mode, as bench_grad: every step checkpointed
+        f = jax.jit(jax.grad(lambda th: jnp.mean(final_x(th, checkpoint=True) ** 2)))
+    else:
+        f = jax.jit(lambda th: jax.vmap(lambda t: jax.jvp(final_x, (th,), (t,))[1])(basis))
     f = f.lower(theta0).compile()
     return f
 progs = {(k, v): build(k, var) for k in ks for v, var in (("orig", old), ("new", new))}
