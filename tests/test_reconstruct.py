@@ -735,6 +735,33 @@ def test_jittered_masks_leave_the_free_fall_to_the_prior_gravitys_parabola(conta
     assert not any("jump by" in line for line in free_fall_lines(clean, g.tolist()))
 
 
+@pytest.mark.parametrize("motion", ["resting", "sliding"])
+def test_jittered_masks_of_a_body_supported_from_the_start_give_no_free_fall_and_the_lines_velocity(motion):
+    """With masks too noisy for the shape test the prior gravity's parabola decides the free
+    fall (above). A body supported from the start (at rest, or sliding at 0.3 m/s) fails it at
+    the third frame; until session 52 it was given the two-frame velocity, which for a body at
+    rest is -g dt / 2: 0.2 m/s upwards at 24 fps. A straight line fits its centres: it is
+    reported as supported, with that line's velocity."""
+    from jaxmpm.reconstruct import free_fall
+    from jaxmpm.reconstruct.pipeline import free_fall_lines
+    from jaxmpm.reconstruct.synthetic import jitter_masks
+
+    _, cams, times, g, *_ = _falling_sphere()
+    u = np.array([0.0, 0.0, 0.0]) if motion == "resting" else np.array([0.3, 0.0, -0.1])
+    centres = np.array([0.3, 0.2, 0.3]) + u * times[:, None]
+    masks = np.stack([sphere_masks(cams, c, 0.06) for c in centres], axis=1)
+    fall = free_fall(jitter_masks(masks), cams, times, dx=0.05, gravity=g)
+    assert not fall.shape_tested
+    assert fall.supported == len(times) and fall.frames == 1 and fall.gravity is None
+    np.testing.assert_allclose(fall.velocity, u, atol=0.02)
+    said = free_fall_lines(fall, g.tolist())
+    assert said[0].startswith(f"- no free fall: the centres of the first {len(times)} frames fit a straight line")
+    assert said[2].startswith("- initial velocity from the supported frames") and len(said) == 3
+    # clean masks: the shape test decides, as before; a body that falls between frames 0 and 1
+    # and lands is not supported (test_jittered_masks_leave_the_free_fall_..., contact 2)
+    assert free_fall(masks, cams, times, dx=0.05, gravity=g).supported == 0
+
+
 def test_free_fall_of_a_body_resting_from_the_start_has_no_gravity():
     from jaxmpm.reconstruct import free_fall
 

@@ -25,10 +25,14 @@ two either way at a low resolution: σ ≈ 0.45 measured on the 96 px drop datas
 in for it: a frame joins while its centre lies within the tolerance of where the parabola with
 the prior's ``g`` through the frames before it (``c0`` and ``v0`` fitted) puts it, so a third
 frame is already tested; ``g`` is not measured (the frames were chosen with it). A body that
-lands is stopped by the collider, which that parabola does not bend to. One case it gets
-wrong: a body resting on a collider from the start fails at the third frame and is given the
-two-frame velocity ``−g Δt / 2`` (0.2 m/s upwards at 24 fps; with clean masks the free ``g``
-parabola finds it at rest); the identification refits the velocity on such masks.
+lands is stopped by the collider, which that parabola does not bend to. A body supported from
+the start (resting on a collider, or sliding on it) fails at the third frame; its centres then
+follow a straight line (no acceleration: each next centre within the tolerance of where the
+line through the frames before it puts it), where a body that fell between frames 0 and 1 and
+landed does not follow one: such a body is reported as supported (no free fall) and
+given that line's velocity, not the two-frame one, which would be ``−g Δt / 2`` (0.2 m/s
+upwards at 24 fps) for a body at rest. With clean masks the free ``g`` parabola finds a
+resting body at rest, with ``g ≈ 0``.
 
 The centroid of a silhouette is the projection of the body's centre only for a convex body
 seen from afar; the error is the same in every frame while the body keeps its shape (free
@@ -71,7 +75,8 @@ class FreeFall:
         size_change: ``(T,)`` median over the views of the relative change of the
             distance-corrected silhouette area since frame 0.
         frames: number of leading frames of the free fall (contact at the next one).
-        velocity: ``(3,)`` initial velocity, m/s (None with fewer than 2 free-fall frames).
+        velocity: ``(3,)`` initial velocity, m/s (None with fewer than 2 free-fall frames and
+            no supported frames).
         gravity: ``(3,)`` acceleration of the free fall, m/s² (None with fewer than 3).
         residual: RMS residual of the parabola over the free-fall frames, m.
         area_noise: robust σ of the silhouettes' relative area from frame to frame
@@ -79,6 +84,10 @@ class FreeFall:
         shape_tested: whether the shape test decided the free fall; False where the masks'
             area noise exceeds :data:`AREA_NOISE_LIMIT` and the prior gravity's parabola
             decided it.
+        supported: where the prior gravity's parabola decided (``shape_tested`` False) and
+            rejected the third frame, the number (at least 3) of leading frames whose centres
+            follow a straight line within the tolerance: a body supported from the start, whose
+            :attr:`velocity` is that line's (``frames`` is then 1); 0 otherwise.
     """
 
     centres: np.ndarray
@@ -90,6 +99,7 @@ class FreeFall:
     residual: float
     area_noise: float = float("nan")
     shape_tested: bool = True
+    supported: int = 0
 
     def gravity_direction(self) -> np.ndarray | None:
         """Unit vector of :attr:`gravity` (None without it)."""
@@ -228,12 +238,25 @@ def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, gravity=
         if np.linalg.norm(c0 + v0 * t0[frames] + 0.5 * prior * t0[frames] ** 2 - centres[frames]) > limit:
             break
         frames = frames + 1
+    supported = 0
+    if not shape_tested and frames == 2 < n_valid:  # the prior's parabola rejected frame 2: supported from the start?
+        line = 2
+        while line < n_valid:  # the next centre where the straight line through the frames before it puts it?
+            c0, v0 = _parabola(t0[:line], centres[:line], np.zeros(3))[0]
+            if np.linalg.norm(c0 + v0 * t0[line] - centres[line]) > limit:
+                break
+            line = line + 1
+        supported = line if line >= 3 else 0
     velocity = g = None
-    if frames >= 3 and shape_tested:  # g measured
+    if supported:  # no free fall: the velocity of the straight line through the supported frames
+        coef, residual = _parabola(t0[:supported], centres[:supported], np.zeros(3))
+        frames, velocity = 1, coef[1]
+    elif frames >= 3 and shape_tested:  # g measured
         coef, residual = _parabola(t0[:frames], centres[:frames])
         velocity, g = coef[1], coef[2]
     elif frames >= 2:  # g known: the prior's (from 2 frames v0 = Δc/Δt − g Δt/2), or none given
         coef, residual = _parabola(t0[:frames], centres[:frames], np.zeros(3) if prior is None else prior)
         velocity = coef[1]
     return FreeFall(centres=centres, spread=spread, size_change=size_change, frames=frames, velocity=velocity,
-                    gravity=g, residual=float(residual), area_noise=noise, shape_tested=shape_tested)
+                    gravity=g, residual=float(residual), area_noise=noise, shape_tested=shape_tested,
+                    supported=supported)

@@ -671,14 +671,19 @@ def free_fall_lines(fall: FreeFall, scene_gravity: list[float]) -> list[str]:
     of a scene whose gravity is ``scene_gravity`` (m/s²): its frames, how they were decided
     where the masks are too noisy for the shape test, the velocity, and the gravity measured
     and whether the scene uses it."""
-    lines = [f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)"]
+    if fall.supported:
+        lines = [f"- no free fall: the centres of the first {fall.supported} frames fit a straight line (RMS "
+                 f"{1e3 * fall.residual:.2f} mm), not the parabola of the scene's gravity: the body is supported "
+                 "from the start"]
+    else:
+        lines = [f"- free fall: {fall.frames} frames fit one parabola (RMS {1e3 * fall.residual:.2f} mm)"]
     if not fall.shape_tested:
         lines.append(f"- the masks' areas jump by {100 * fall.area_noise:.0f} % (σ) from frame to frame, too much to "
                      "tell contact by the silhouettes' size: the free fall is the frames whose centres follow the "
                      f"parabola of the scene's gravity {scene_gravity} m/s², and gravity is not measured")
     if fall.velocity is not None:
-        lines.append("- initial velocity from the free fall (the fit's starting guess): "
-                     + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
+        lines.append(f"- initial velocity from the {'supported frames' if fall.supported else 'free fall'} (the fit's "
+                     "starting guess): " + ", ".join(f"{v:.3f}" for v in fall.velocity) + " m/s")
     if fall.gravity is not None:
         used = fall.frames >= GRAVITY_FRAMES and list(scene_gravity) == [float(g) for g in fall.gravity]
         lines.append("- gravity from the free fall: " + ", ".join(f"{g:.2f}" for g in fall.gravity)
