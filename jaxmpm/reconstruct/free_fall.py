@@ -26,13 +26,14 @@ in for it: a frame joins while its centre lies within the tolerance of where the
 the prior's ``g`` through the frames before it (``c0`` and ``v0`` fitted) puts it, so a third
 frame is already tested; ``g`` is not measured (the frames were chosen with it). A body that
 lands is stopped by the collider, which that parabola does not bend to. A body supported from
-the start (resting on a collider, or sliding on it) fails at the third frame; its centres then
-follow a straight line (no acceleration: each next centre within the tolerance of where the
-line through the frames before it puts it), where a body that fell between frames 0 and 1 and
-landed does not follow one: such a body is reported as supported (no free fall) and
-given that line's velocity, not the two-frame one, which would be ``−g Δt / 2`` (0.2 m/s
-upwards at 24 fps) for a body at rest. With clean masks the free ``g`` parabola finds a
-resting body at rest, with ``g ≈ 0``.
+the start (resting on a collider, or sliding on it) fails that parabola (at 24 fps at the third
+frame). Where its centres follow a straight line (no acceleration: each next centre within the
+tolerance of where the line through the frames before it puts it) past the frame the parabola
+rejected, as a body that fell visibly before it landed does not, the body is reported as
+supported (no free fall) and given that line's velocity, not the parabola's, which would be
+``−g Δt / 2`` from 2 frames (0.2 m/s upwards at 24 fps) for a body at rest. Where the video is
+too short for the parabola to fail, the two cannot be told apart. With clean masks the free
+``g`` parabola finds a resting body at rest, with ``g ≈ 0``.
 
 The centroid of a silhouette is the projection of the body's centre only for a convex body
 seen from afar; the error is the same in every frame while the body keeps its shape (free
@@ -85,9 +86,10 @@ class FreeFall:
             area noise exceeds :data:`AREA_NOISE_LIMIT` and the prior gravity's parabola
             decided it.
         supported: where the prior gravity's parabola decided (``shape_tested`` False) and
-            rejected the third frame, the number (at least 3) of leading frames whose centres
-            follow a straight line within the tolerance: a body supported from the start, whose
-            :attr:`velocity` is that line's (``frames`` is then 1); 0 otherwise.
+            rejected a frame, the number of leading frames whose centres follow a straight line
+            within the tolerance, where that line reaches past the rejected frame: a body
+            supported from the start, whose :attr:`velocity` is that line's (``frames`` is then
+            1); 0 otherwise.
     """
 
     centres: np.ndarray
@@ -239,14 +241,14 @@ def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, gravity=
             break
         frames = frames + 1
     supported = 0
-    if not shape_tested and frames == 2 < n_valid:  # the prior's parabola rejected frame 2: supported from the start?
+    if not shape_tested and 2 <= frames < n_valid:  # the prior's parabola rejected a frame: supported from the start?
         line = 2
         while line < n_valid:  # the next centre where the straight line through the frames before it puts it?
             c0, v0 = _parabola(t0[:line], centres[:line], np.zeros(3))[0]
             if np.linalg.norm(c0 + v0 * t0[line] - centres[line]) > limit:
                 break
             line = line + 1
-        supported = line if line >= 3 else 0
+        supported = line if line > frames else 0  # the line explains the frame the parabola did not
     velocity = g = None
     if supported:  # no free fall: the velocity of the straight line through the supported frames
         coef, residual = _parabola(t0[:supported], centres[:supported], np.zeros(3))
