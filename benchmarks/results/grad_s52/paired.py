@@ -3,19 +3,21 @@ process (session 52): the host is shared, and runs of separate processes drifted
 
     git show BASE:jaxmpm/step.py > jaxmpm/_step_orig.py     # the variant to compare against
     python benchmarks/results/grad_s52/paired.py STEPS ROUNDS KS NAMES
-    # e.g. 20 16 1,6 apply_domain_walls; k = 0 times the forward, k = -1 the reverse-mode gradient; delete jaxmpm/_step_orig.py after
+    # e.g. 20 16 1,6 apply_domain_walls; stencil_moments@jaxmpm._state_orig (after
+    # git show BASE:jaxmpm/state.py > jaxmpm/_state_orig.py) swaps a name step.py imports; k = 0 times the forward, k = -1 the reverse-mode gradient; delete jaxmpm/_step_orig.py after
 
 Both variants are compiled before any timing; each round times every program once, the order
 reversed every other round; the figure is the median over rounds of new/orig in the same round.
 25,000 particles, 64^3 grid (the target-6 cube)."""
-import sys, time, numpy as np, jax, jax.numpy as jnp
+import importlib, sys, time, numpy as np, jax, jax.numpy as jnp
 import jaxmpm.step; S = sys.modules["jaxmpm.step"]
 import jaxmpm._step_orig; O = sys.modules["jaxmpm._step_orig"]
 from jaxmpm.bench import grad_problem
 steps, rounds = int(sys.argv[1]), int(sys.argv[2]); ks = [int(k) for k in sys.argv[3].split(",")]
-names = sys.argv[4].split(",")  # names of module-level functions to swap
+names = sys.argv[4].split(",")  # names in jaxmpm.step to swap; NAME@MODULE takes the old one from MODULE
+names, sources = [n.split("@")[0] for n in names], [n.split("@")[1] if "@" in n else None for n in names]
 new = {n: getattr(S, n) for n in names}
-old = {n: getattr(O, n) for n in names}
+old = {n: getattr(O if m is None else importlib.import_module(m), n) for n, m in zip(names, sources)}
 final_x, theta0 = grad_problem(25000, 64, steps)
 def build(k, variant):
     for n in names: setattr(S, n, variant[n])
