@@ -71,6 +71,25 @@ def spread(x: Array, count: int) -> Array:
     return jnp.stack([x] * count)
 
 
+def lowered_primitive(name: str, impl, abstract_eval, batch, *, jvp=None, transpose=None, bilinear=None,
+                      multiple_results: bool = False) -> Primitive:
+    """A JAX primitive whose lowering is ``impl``'s own JAX operations, with its rules: ``batch``
+    (the batching rule), and either ``jvp`` and ``transpose`` or ``bilinear``, the pair of
+    transposes of a primitive bilinear in its two operands (``ad.defbilinear``)."""
+    prim = Primitive(name)
+    prim.multiple_results = multiple_results
+    prim.def_impl(impl)
+    prim.def_abstract_eval(abstract_eval)
+    mlir.register_lowering(prim, mlir.lower_fun(impl, multiple_results=multiple_results))
+    if bilinear is not None:
+        ad.defbilinear(prim, *bilinear)
+    else:
+        ad.primitive_jvps[prim] = jvp
+        ad.primitive_transposes[prim] = transpose
+    batching.primitive_batchers[prim] = batch
+    return prim
+
+
 def scale_rows(w: Float[Array, "... N"], x: Float[Array, "... N *T"]) -> Float[Array, "... N *T"]:
     """``w * x`` with ``w`` broadcast over ``x``'s trailing axes ``T``: row ``n`` of ``x``
     scaled by ``w[n]`` (P2G's weighted rows, momentum over mass). Leading axes broadcast.
@@ -123,12 +142,8 @@ def _scale_rows_batch(args, dims):
     return _scale_rows_p.bind(w, x), 0
 
 
-_scale_rows_p = Primitive("jaxmpm_scale_rows")
-_scale_rows_p.def_impl(_scale_rows_impl)
-_scale_rows_p.def_abstract_eval(_scale_rows_abstract)
-mlir.register_lowering(_scale_rows_p, mlir.lower_fun(_scale_rows_impl, multiple_results=False))
-ad.defbilinear(_scale_rows_p, _scale_rows_transpose_w, _scale_rows_transpose_x)
-batching.primitive_batchers[_scale_rows_p] = _scale_rows_batch
+_scale_rows_p = lowered_primitive("jaxmpm_scale_rows", _scale_rows_impl, _scale_rows_abstract, _scale_rows_batch,
+                                  bilinear=(_scale_rows_transpose_w, _scale_rows_transpose_x))
 
 
 def symmetric_pair_sum(weights: list[Array], values: Array) -> Array:
@@ -196,10 +211,5 @@ def _pair_sum_batch(args, dims):
     return _pair_sum_p.bind(*moved), 1
 
 
-_pair_sum_p = Primitive("jaxmpm_symmetric_pair_sum")
-_pair_sum_p.def_impl(_pair_sum_impl)
-_pair_sum_p.def_abstract_eval(_pair_sum_abstract)
-mlir.register_lowering(_pair_sum_p, mlir.lower_fun(_pair_sum_impl, multiple_results=False))
-ad.primitive_jvps[_pair_sum_p] = _pair_sum_jvp
-ad.primitive_transposes[_pair_sum_p] = _pair_sum_transpose
-batching.primitive_batchers[_pair_sum_p] = _pair_sum_batch
+_pair_sum_p = lowered_primitive("jaxmpm_symmetric_pair_sum", _pair_sum_impl, _pair_sum_abstract, _pair_sum_batch,
+                                jvp=_pair_sum_jvp, transpose=_pair_sum_transpose)

@@ -11,11 +11,19 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.extend.core import Primitive
-from jax.interpreters import ad, batching, mlir
+from jax.interpreters import ad, batching
 from jaxtyping import Array, Bool, Float, Int
 
-from .fusion import always_true, compute_once, materialize, scale_rows, spread, sum_last, sum_to_shape
+from .fusion import (
+    always_true,
+    compute_once,
+    lowered_primitive,
+    materialize,
+    scale_rows,
+    spread,
+    sum_last,
+    sum_to_shape,
+)
 
 #: Number of padding cells added around the scene's domain on every side, so that the
 #: quadratic B-spline stencil of a particle anywhere in the domain (or slightly
@@ -358,15 +366,14 @@ def _scatter_blocks_batch(args, dims, *, num_nodes: int):
     return out.reshape((size, num_nodes) + out.shape[1:]), 0
 
 
-_scatter_blocks_p = Primitive("jaxmpm_scatter_blocks")
-_scatter_blocks_p.def_impl(_scatter_blocks_impl)
-_scatter_blocks_p.def_abstract_eval(
-    lambda *avals, num_nodes: jax.core.ShapedArray((num_nodes, avals[-1].shape[-1]), avals[-1].dtype)
+_scatter_blocks_p = lowered_primitive(
+    "jaxmpm_scatter_blocks",
+    _scatter_blocks_impl,
+    lambda *avals, num_nodes: jax.core.ShapedArray((num_nodes, avals[-1].shape[-1]), avals[-1].dtype),
+    _scatter_blocks_batch,
+    jvp=_scatter_blocks_jvp,
+    transpose=_scatter_blocks_transpose,
 )
-mlir.register_lowering(_scatter_blocks_p, mlir.lower_fun(_scatter_blocks_impl, multiple_results=False))
-ad.primitive_jvps[_scatter_blocks_p] = _scatter_blocks_jvp
-ad.primitive_transposes[_scatter_blocks_p] = _scatter_blocks_transpose
-batching.primitive_batchers[_scatter_blocks_p] = _scatter_blocks_batch
 
 
 def _stencil_moments(
@@ -452,14 +459,8 @@ def _moments_batch(args, dims, *, offsets):
     return _moments_p.bind(*args, offsets=offsets), [0, 0]
 
 
-_moments_p = Primitive("jaxmpm_moment_sums")
-_moments_p.multiple_results = True
-_moments_p.def_impl(_moments_impl)
-_moments_p.def_abstract_eval(_moments_abstract)
-mlir.register_lowering(_moments_p, mlir.lower_fun(_moments_impl, multiple_results=True))
-ad.primitive_jvps[_moments_p] = _moments_jvp
-ad.primitive_transposes[_moments_p] = _moments_transpose
-batching.primitive_batchers[_moments_p] = _moments_batch
+_moments_p = lowered_primitive("jaxmpm_moment_sums", _moments_impl, _moments_abstract, _moments_batch,
+                               jvp=_moments_jvp, transpose=_moments_transpose, multiple_results=True)
 
 
 def _masked(weights, incompatible):

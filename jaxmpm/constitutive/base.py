@@ -8,12 +8,11 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Primitive
-from jax.interpreters import ad, batching, mlir
+from jax.interpreters import batching
 from jaxtyping import Array, Float
 
 from ..errors import SceneError
-from ..fusion import sum_last, sum_to_shape
+from ..fusion import lowered_primitive, sum_last, sum_to_shape
 from ..parameters import Parameter
 
 Params = dict[str, Float[Array, ""]]
@@ -82,16 +81,16 @@ def _matmul_batch(args, dims):
     return _matmul_p.bind(a, b), 0
 
 
-_matmul_p = Primitive("jaxmpm_small_matmul")
-_matmul_p.def_impl(_matmul_impl)
-_matmul_p.def_abstract_eval(_matmul_abstract)
-mlir.register_lowering(_matmul_p, mlir.lower_fun(_matmul_impl, multiple_results=False))
-ad.defbilinear(
-    _matmul_p,
-    lambda ct, a, b: sum_to_shape(_dot(ct, b.mT), a.aval.shape),
-    lambda ct, a, b: sum_to_shape(_dot(a.mT, ct), b.aval.shape),
+_matmul_p = lowered_primitive(
+    "jaxmpm_small_matmul",
+    _matmul_impl,
+    _matmul_abstract,
+    _matmul_batch,
+    bilinear=(
+        lambda ct, a, b: sum_to_shape(_dot(ct, b.mT), a.aval.shape),
+        lambda ct, a, b: sum_to_shape(_dot(a.mT, ct), b.aval.shape),
+    ),
 )
-batching.primitive_batchers[_matmul_p] = _matmul_batch
 
 
 def lame_from_young(E, nu):
