@@ -165,6 +165,20 @@ def _parabola(times: np.ndarray, centres: np.ndarray, gravity: np.ndarray | None
     return coef, float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
 
 
+def _followed(times: np.ndarray, centres: np.ndarray, gravity: np.ndarray, limit: float) -> int:
+    """How many leading frames (at least 2) follow the known-``gravity`` parabola: each next
+    centre lies within ``limit`` (m) of where the parabola through the frames before it puts it
+    (``gravity`` 0: a straight line)."""
+    frames = 2
+    while frames < len(times):
+        c0, v0 = _parabola(times[:frames], centres[:frames], gravity)[0]
+        t = times[frames]
+        if np.linalg.norm(c0 + v0 * t + 0.5 * gravity * t**2 - centres[frames]) > limit:
+            break
+        frames = frames + 1
+    return frames
+
+
 def area_noise(corrected: np.ndarray) -> float:
     """Robust σ of the relative frame-to-frame noise of silhouette areas ``corrected (V, T)``
     (NaN where a view does not see the body): from the second differences of their logarithms
@@ -235,19 +249,11 @@ def free_fall(masks: np.ndarray, cameras, times: np.ndarray, dx: float, gravity=
             if r > limit:
                 break
             frames = frames + 1
-    while not shape_tested and 2 <= frames < n_valid:  # the next centre where the prior's parabola puts it?
-        c0, v0 = _parabola(t0[:frames], centres[:frames], prior)[0]
-        if np.linalg.norm(c0 + v0 * t0[frames] + 0.5 * prior * t0[frames] ** 2 - centres[frames]) > limit:
-            break
-        frames = frames + 1
+    if not shape_tested and n_valid >= 2:
+        frames = _followed(t0[:n_valid], centres[:n_valid], prior, limit)
     supported = 0
     if not shape_tested and 2 <= frames < n_valid:  # the prior's parabola rejected a frame: supported from the start?
-        line = 2
-        while line < n_valid:  # the next centre where the straight line through the frames before it puts it?
-            c0, v0 = _parabola(t0[:line], centres[:line], np.zeros(3))[0]
-            if np.linalg.norm(c0 + v0 * t0[line] - centres[line]) > limit:
-                break
-            line = line + 1
+        line = _followed(t0[:n_valid], centres[:n_valid], np.zeros(3), limit)
         supported = line if line > frames else 0  # the line explains the frame the parabola did not
     velocity = g = None
     if supported:  # no free fall: the velocity of the straight line through the supported frames
