@@ -1,3 +1,10 @@
+"""Op profiles of two forward-mode programs (k tangents of the parameters and the state, a
+10-step rollout of the 25,000-particle cube) traced in alternation in one process (session 53),
+summed per XLA op over ROUNDS rounds; prints the ops whose CPU ms differ most from the
+per-direction scaling k_a / k_b.
+
+    python benchmarks/results/grad_s53/profile_pair.py KA,KB ROUNDS OUT.json
+"""
 import sys, collections, jax, jax.numpy as jnp, equinox as eqx
 sys.path.insert(0, "benchmarks")
 import profile_step as P
@@ -26,7 +33,7 @@ for r in range(int(sys.argv[2])):
         for op, v in t.items(): tabs[k][op] += v["ms"]
         for op, v in t.items(): tabs[k]["@name:" + op] = v["op_name"]
 import json
-json.dump({str(k): dict(v) for k, v in tabs.items()}, open("/tmp/s53/prof34.json", "w"))
+json.dump({str(k): dict(v) for k, v in tabs.items()}, open(sys.argv[3], "w"))
 print({k: [round(x, 1) for x in w] for k, w in walls.items()})
 a, b = ks
 rows = []
