@@ -445,6 +445,11 @@ def test_domain_walls_rule_matches_autodiff_of_the_walls(dim):
     v = jax.random.normal(keys[0], (grid.num_nodes, dim), jnp.float64)
     walled = jnp.stack([below | beyond for below, beyond in domain_wall_nodes(grid)], axis=-1)
     assert bool(jnp.any(walled & (v < 0))) and bool(jnp.any(walled & (v > 0)))
+    # the rule's mask reads the walls on the grid's shape: the same nodes, unflattened
+    for flat, shaped in zip(domain_wall_nodes(grid), domain_wall_nodes(grid, flat=False), strict=True):
+        for a, b in zip(flat, shaped, strict=True):
+            assert b.shape == grid.shape
+            np.testing.assert_array_equal(a, b.reshape(-1))
 
     def mine(u):
         return apply_domain_walls(grid, u)
