@@ -456,9 +456,17 @@ def _moments_transpose(cotangents, *args, offsets):
 
 
 def _moments_batch(args, dims, *, offsets):
+    # the batch is folded into the particle rows, (B N, ...): XLA's CPU backend splits a
+    # fusion's leading axis among its threads, and k = 3 tangents on 2 threads split 2 : 1
+    k = len(offsets)
     size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
-    args = [a[None] if d is None else batching.bdim_at_front(a, d, size) for a, d in zip(args, dims)]
-    return _moments_p.bind(*args, offsets=offsets), [0, 0]
+    args = [_batch_at_front(a, d, size) for a, d in zip(args, dims)]
+    n, c = args[k].shape[-2:]
+    lead = jnp.broadcast_shapes(*(a.shape[:-1] for a in args[:k]), *(a.shape[:-2] for a in args[k:]))
+    weights = [jnp.broadcast_to(w, lead + (n,)).reshape(-1) for w in args[:k]]
+    values = [jnp.broadcast_to(v, lead + (n, c)).reshape(-1, c) for v in args[k:]]
+    v, M = _moments_p.bind(*weights, *values, offsets=offsets)
+    return (v.reshape(lead + (n, c)), M.reshape(lead + (n,) + M.shape[1:])), [0, 0]
 
 
 _moments_p = lowered_primitive("jaxmpm_moment_sums", _moments_impl, _moments_abstract, _moments_batch,
