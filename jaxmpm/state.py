@@ -415,9 +415,15 @@ def _moments_impl(*args, offsets):
     return [acc[..., 0], acc[..., 1:]]
 
 
+def _moments_lead(args, k: int) -> tuple[int, ...]:
+    """The leading axes, broadcast, of ``moment_sums``' ``k`` weights ``(..., N)`` and values
+    ``(..., N, C)`` (arrays or avals)."""
+    return jnp.broadcast_shapes(*(a.shape[:-1] for a in args[:k]), *(a.shape[:-2] for a in args[k:]))
+
+
 def _moments_abstract(*avals, offsets):
     k = len(offsets)
-    lead = jnp.broadcast_shapes(*(a.shape[:-1] for a in avals[:k]), *(a.shape[:-2] for a in avals[k:]))
+    lead = _moments_lead(avals, k)
     (n, c), dtype, dim = avals[k].shape[-2:], avals[k].dtype, len(offsets[0])
     return [jax.core.ShapedArray(lead + (n, c), dtype), jax.core.ShapedArray(lead + (n, c, dim), dtype)]
 
@@ -457,12 +463,12 @@ def _moments_transpose(cotangents, *args, offsets):
 
 def _moments_batch(args, dims, *, offsets):
     # the batch is folded into the particle rows, (B N, ...): XLA's CPU backend splits a
-    # fusion's leading axis among its threads, and k = 3 tangents on 2 threads split 2 : 1
+    # fusion's leading axis among its threads, and k = 3 tangents on 2 threads split 1 + 2
     k = len(offsets)
     size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
     args = [_batch_at_front(a, d, size) for a, d in zip(args, dims)]
     n, c = args[k].shape[-2:]
-    lead = jnp.broadcast_shapes(*(a.shape[:-1] for a in args[:k]), *(a.shape[:-2] for a in args[k:]))
+    lead = _moments_lead(args, k)
     weights = [jnp.broadcast_to(w, lead + (n,)).reshape(-1) for w in args[:k]]
     values = [jnp.broadcast_to(v, lead + (n, c)).reshape(-1, c) for v in args[k:]]
     v, M = _moments_p.bind(*weights, *values, offsets=offsets)
