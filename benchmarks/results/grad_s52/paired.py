@@ -2,9 +2,10 @@
 process (session 52): the host is shared, and runs of separate processes drifted by 20-40 %.
 
     git show BASE:jaxmpm/step.py > jaxmpm/_step_orig.py     # the variant to compare against
-    python benchmarks/results/grad_s52/paired.py STEPS ROUNDS KS NAMES
+    python benchmarks/results/grad_s52/paired.py STEPS ROUNDS KS NAMES [ALSO]
     # e.g. 20 16 1,6 apply_domain_walls; stencil_moments@jaxmpm._state_orig (after
     # git show BASE:jaxmpm/state.py > jaxmpm/_state_orig.py) swaps a name step.py imports; k = 0 times the forward, k = -1 the reverse-mode gradient; delete jaxmpm/_step_orig.py after
+    # ALSO (session 53): modules, comma-separated, whose imports of NAMES are swapped as well, e.g. jaxmpm.state
 
 Both variants are compiled before any timing; each round times every program once, the order
 reversed every other round; the figure is the median over rounds of new/orig in the same round.
@@ -16,11 +17,15 @@ from jaxmpm.bench import grad_problem
 steps, rounds = int(sys.argv[1]), int(sys.argv[2]); ks = [int(k) for k in sys.argv[3].split(",")]
 names = sys.argv[4].split(",")  # names in jaxmpm.step to swap; NAME@MODULE takes the old one from MODULE
 names, sources = [n.split("@")[0] for n in names], [n.split("@")[1] if "@" in n else None for n in names]
+also = [importlib.import_module(m) for m in sys.argv[5].split(",")] if len(sys.argv) > 5 else []
 new = {n: getattr(S, n) for n in names}
 old = {n: getattr(O if m is None else importlib.import_module(m), n) for n, m in zip(names, sources)}
 final_x, theta0 = grad_problem(25000, 64, steps)
+def put(variant):
+    for module in [S, *also]:
+        for n in names: setattr(module, n, variant[n])
 def build(k, variant):
-    for n in names: setattr(S, n, variant[n])
+    put(variant)
     basis = jnp.eye(6, dtype=theta0.dtype)[:k]
     if k == 0:
         f = jax.jit(lambda th: final_x(th))
@@ -31,7 +36,7 @@ def build(k, variant):
     f = f.lower(theta0).compile()
     return f
 progs = {(k, v): build(k, var) for k in ks for v, var in (("orig", old), ("new", new))}
-for n in names: setattr(S, n, new[n])
+put(new)
 outs = {key: np.asarray(p(theta0)) for key, p in progs.items()}
 for k in ks: print("k", k, "max |new - orig|", float(np.max(np.abs(outs[(k, 'new')] - outs[(k, 'orig')]))))
 times = {key: [] for key in progs}
