@@ -5,26 +5,11 @@ durations are the op's wall time.
 
     python benchmarks/results/grad_s53/op_events.py 3,4 multiply_add_fusion.47,copy_pad_fusion
 """
-import sys, collections, tempfile, numpy as np, jax, jax.numpy as jnp, equinox as eqx
-sys.path.insert(0, "benchmarks")
-import profile_step as P
-from jaxmpm.bench import _scene_model
-from jaxmpm.model import initial_state
-from jaxmpm.step import step
-model, params = _scene_model(25000, 64, "corotated", jnp.float32)
-state = initial_state(model, params)
-adv = jax.jit(lambda s: step(model, params, s))
-for _ in range(5): state = adv(state)
-dynamic, static = eqx.partition(state, eqx.is_inexact_array)
-leaves, treedef = jax.tree_util.tree_flatten((params, dynamic))
-def push(params, dynamic, tangents):
-    def out(p, d):
-        return eqx.partition(P.rollout(model, p, eqx.combine(d, static), 10), eqx.is_inexact_array)[0]
-    return jax.vmap(lambda t: jax.jvp(out, (params, dynamic), t)[1])(tangents)
+import sys, collections, tempfile, json, numpy as np, jax
+from tangent_program import P, push, arguments
 ops = sys.argv[2].split(",")
 for k in [int(a) for a in sys.argv[1].split(",")]:
-    keys = jax.random.split(jax.random.PRNGKey(0), len(leaves))
-    tangents = treedef.unflatten([1e-3 * jax.random.normal(kk, (k, *jnp.shape(a)), jnp.result_type(a)) for kk, a in zip(keys, leaves)])
+    params, dynamic, tangents = arguments(k)
     f = jax.jit(push).lower(params, dynamic, tangents).compile()
     jax.block_until_ready(f(params, dynamic, tangents))
     with tempfile.TemporaryDirectory() as d:

@@ -5,29 +5,14 @@ per-direction scaling k_a / k_b.
 
     python benchmarks/results/grad_s53/profile_pair.py KA,KB ROUNDS OUT.json
 """
-import sys, collections, jax, jax.numpy as jnp, equinox as eqx
-sys.path.insert(0, "benchmarks")
-import profile_step as P
-from jaxmpm.bench import _scene_model
-from jaxmpm.model import initial_state
-from jaxmpm.step import step
-model, params = _scene_model(25000, 64, "corotated", jnp.float32)
-state = initial_state(model, params)
-adv = jax.jit(lambda s: step(model, params, s))
-for _ in range(5): state = adv(state)
-dynamic, static = eqx.partition(state, eqx.is_inexact_array)
-leaves, treedef = jax.tree_util.tree_flatten((params, dynamic))
-def push(params, dynamic, tangents):
-    def out(p, d):
-        return eqx.partition(P.rollout(model, p, eqx.combine(d, static), 10), eqx.is_inexact_array)[0]
-    return jax.vmap(lambda t: jax.jvp(out, (params, dynamic), t)[1])(tangents)
+import sys, collections, tempfile, json, numpy as np, jax
+from tangent_program import P, push, arguments
 ks = [int(a) for a in sys.argv[1].split(",")]
 tabs = {k: collections.defaultdict(float) for k in ks}
 walls = {k: [] for k in ks}
 for r in range(int(sys.argv[2])):
     for k in (ks if r % 2 == 0 else ks[::-1]):
-        keys = jax.random.split(jax.random.PRNGKey(0), len(leaves))
-        tangents = treedef.unflatten([1e-3 * jax.random.normal(kk, (k, *jnp.shape(a)), jnp.result_type(a)) for kk, a in zip(keys, leaves)])
+        params, dynamic, tangents = arguments(k)
         t, w, c = P.profile(push, (params, dynamic, tangents), 3, 10)
         walls[k].append(w)
         for op, v in t.items(): tabs[k][op] += v["ms"]
