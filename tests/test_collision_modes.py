@@ -123,10 +123,10 @@ SURFACE_LAW_MISSING = pytest.mark.xfail(strict=True, reason="known defect: CPIC 
 def test_a_free_particle_leaves_a_box_at_e_times_the_speed_it_arrives_with(e, tmp_path):
     """The contact law's promise (docs/colliders.md): a particle that reaches the surface
     leaves with ``e`` times its normal arrival speed, and with ``e = 0`` it stays on the
-    surface. Today (E = 1 Pa) with e = 0 it stays 0.05 dx inside the box, held by the
-    position correction with -1.64 m/s still pointing into it, and with e = 1 it comes to
-    rest: no bounce (with E = 1 kPa its own stress sends it off at 0.40 v_in for e = 0 and 0.60
-    for e = 1). Before the surface the ghost layer slows the approach (by ~17%)."""
+    surface. Today (E = 1 Pa; the face lies on a node row) the ghost layer's drag stops it
+    before the face, 0.19 cells above it with e = 0 and 0.98 with e = 1: no bounce (with
+    E = 1 kPa its own stress sends it off at 0.56 v_in for e = 0 and 0.62 for e = 1;
+    ``benchmarks/cpic_restitution.py``, session 54)."""
     vy, y = _free_particle_normal_speeds(e, tmp_path).T
     turn = int(np.argmax(vy >= 0.0))  # the substep at which the particle met the surface
     arrival = -vy[turn - 1]
