@@ -109,13 +109,13 @@ def _free_particle_normal_speeds(restitution: float, folder, contact: str = "sli
     return np.asarray(out)
 
 
-#: Known defect, measured and not fixed (docs/colliders.md, "Restitution in CPIC"): a particle
-#: that reaches a CPIC surface is held there by the position correction while its velocity
-#: still points into the collider, and a ghost layer of weight W < 1 can only slow an
-#: approach, never reverse it; the contact law is not applied where the particle meets the
-#: surface. Applying it there fixes these tests but changes a sand pile on a sticky box.
-SURFACE_LAW_MISSING = pytest.mark.xfail(strict=True, reason="known defect: CPIC does not apply the contact law "
-                                        "where a particle meets the surface (docs/colliders.md)")
+#: Known defect, measured and not fixed (docs/colliders.md, "Restitution in CPIC"): the contact
+#: law acts on a particle only through its ghost nodes, whose share W < 1 of its stencil makes
+#: a drag that slows an approach (harder with a restitution) and stores nothing to give back;
+#: without stress a particle stops before the face and never bounces. Applying the law where
+#: the particle is predicted to cross changes nothing now: it never gets there (session 54).
+SURFACE_LAW_MISSING = pytest.mark.xfail(strict=True, reason="known defect: CPIC's ghost layer slows an approach "
+                                        "and never sends it back (docs/colliders.md)")
 
 
 @SURFACE_LAW_MISSING
