@@ -1,7 +1,7 @@
 """How much energy one MPM step's transfers dissipate, whatever dt: why a rollout at fixed dx
 does not converge as dt falls.
 
-    python benchmarks/transfer_dissipation.py [--dx 0.02] [--float32]
+    python benchmarks/transfer_dissipation.py [--dx 0.02] [--float32] [--flip 0.99]
     python benchmarks/transfer_dissipation.py --case-study-3d [--dx 0.05]
 
 A 2D dam break (a 0.4 m water column, PAC-NeRF's Newtonian fluid with water's viscosity, a
@@ -12,7 +12,8 @@ and reports the kinetic energy (APIC's: ``m |v|^2 / 2`` plus the affine part
 is left is the transfers' own loss per step (P2G then G2P project the particles' velocity
 fields onto the grid's and back). Then it reruns the whole 0.6 s at 40 ... 320 substeps a
 frame and prints the mechanical energy lost: the dissipation a rollout pays grows with its
-step count. ``--case-study-3d`` measures the loss per step on the 3D dam break of
+step count. ``--flip`` blends FLIP's update into APIC's (``Model.flip``) to see how much of it
+that keeps. ``--case-study-3d`` measures the loss per step on the 3D dam break of
 ``examples/dam_break_3d_obstacle.py`` instead (float32, 88 substeps a frame to t = 0.5 s, as
 its dx = 0.05 m runs). Results: docs/case_studies/dam_break_3d_obstacle.md ("Why a finer dt moves the
 prediction").
@@ -31,10 +32,10 @@ G = 9.81
 HEIGHT = 0.4
 
 
-def spec(dx: float, substeps: int, frames: int) -> dict:
+def spec(dx: float, substeps: int, frames: int, flip: float = 0.0) -> dict:
     u = math.sqrt(G * HEIGHT)
     return {
-        "dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [1.6, 0.8]}, "frames": frames, "frame_dt": 0.02,
+        "flip": flip, "dim": 2, "dx": dx, "domain": {"lo": [0, 0], "hi": [1.6, 0.8]}, "frames": frames, "frame_dt": 0.02,
         "substeps": substeps, "gravity": [0, -G],
         "bodies": [{"shape": "box", "lo": [0.0, 0.0], "hi": [HEIGHT, HEIGHT],
                     "material": {"model": "newtonian", "mu": 0.002, "kappa": 1000 * (6 * u) ** 2}}],
@@ -95,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dx", type=float, default=None, help="grid spacing (default 0.02 m; 0.05 m for the case study)")
     ap.add_argument("--float32", action="store_true", help="float32 (default float64)")
     ap.add_argument("--case-study-3d", action="store_true", help="the 3D dam break's scene instead")
+    ap.add_argument("--flip", type=float, default=0.0, help="FLIP share of the velocity update (Model.flip; 0 = APIC)")
     args = ap.parse_args(argv)
     if args.case_study_3d:
         case_study_3d(args.dx or 0.05)
@@ -104,16 +106,16 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
     dtype = jnp.float32 if args.float32 else jnp.float64
 
-    scene = load_scene(spec(dx, 80, 11), dtype=dtype)
+    scene = load_scene(spec(dx, 80, 11, args.flip), dtype=dtype)
     start = simulate(scene.model, scene.params).final
     print(f"dam break, dx = {dx} m, {scene.model.num_particles} particles, {jnp.dtype(dtype).name}; "
           f"kinetic energy at t = 0.2 s: {kinetic(start, dx):.3f} J/m")
-    added_per_step(lambda n: spec(dx, n, 2), start, dx, dtype, [80, 800, 8000, 80000, 800000])
+    added_per_step(lambda n: spec(dx, n, 2, args.flip), start, dx, dtype, [80, 800, 8000, 80000, 800000])
 
     print("\n| substeps per frame | mechanical energy lost by 0.2 / 0.4 / 0.58 s (J/m) |")
     print("|---|---|")
     for substeps in (40, 80, 160, 320):
-        whole = load_scene(spec(dx, substeps, 30), dtype=dtype)
+        whole = load_scene(spec(dx, substeps, 30, args.flip), dtype=dtype)
         traj = simulate(whole.model, whole.params, observe=lambda s: s)
         e = [mechanical(jax.tree.map(lambda a, i=i: a[i], traj.extra), dx) for i in range(30)]
         print(f"| {substeps} | " + " / ".join(f"{e[0] - e[i]:.2f}" for i in (10, 20, 29)) + " |")

@@ -96,6 +96,11 @@ class Model(eqx.Module):
             mode only; else ``None``). Built on construction when not given.
         penetration: strength in [0, 1] of the CPIC penetration correction: the fraction of a
             predicted penetration undone in the same substep.
+        flip: weight ``alpha`` in [0, 1) of FLIP's velocity update blended into APIC's (0:
+            APIC alone, the default and PAC-NeRF's transfer). APIC's transfers take a share of
+            the kinetic energy out at every step, whatever dt, so at fixed dx a finer dt adds
+            numerical viscosity; a blend of 0.95-0.99 keeps most of it (docs/materials.md,
+            "Transfers"). Costs one more gather per step.
     """
 
     grid: Grid
@@ -108,6 +113,7 @@ class Model(eqx.Module):
     fields: tuple | None = None
     boundary: tuple | None = None
     penetration: float = eqx.field(static=True, default=0.5)
+    flip: float = eqx.field(static=True, default=0.0)
 
     def __post_init__(self):
         if self.collision not in COLLISION_MODES:
@@ -141,6 +147,8 @@ class Model(eqx.Module):
     def __check_init__(self):
         if not 0.0 <= self.penetration <= 1.0:
             raise ValueError(f"penetration must be in [0, 1], got {self.penetration}")
+        if not 0.0 <= self.flip < 1.0:
+            raise ValueError(f"flip must be in [0, 1) (pure FLIP, 1, is noisy and not offered), got {self.flip}")
 
     @property
     def dt(self) -> float:

@@ -30,7 +30,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 _TOP_REQUIRED = ("dim", "dx", "domain", "frames", "frame_dt")
-_TOP_OPTIONAL = ("gravity", "substeps", "dt", "collision", "bodies", "colliders")
+_TOP_OPTIONAL = ("gravity", "substeps", "dt", "collision", "flip", "bodies", "colliders")
 _BODY_SHAPES = {
     "box": (("lo", "hi"), ()),
     "sphere": (("center", "radius"), ()),
@@ -341,6 +341,9 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     substeps = _substeps(spec, frame_dt)
     gravity = vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
     collision = Collision(_choice(spec.get("collision", Collision.CPIC.value), COLLISION_MODES, "scene: 'collision'"))
+    flip = float(_number(spec.get("flip", 0.0), "scene: 'flip'"))
+    if not 0.0 <= flip < 1.0:
+        raise SceneError(f"scene: 'flip' must be in [0, 1) (the FLIP share of the velocity update), got {flip}")
     grid = Grid(lo=tuple(lo.tolist()), hi=tuple(hi.tolist()), dx=float(dx))
     if grid.num_nodes >= MAX_INT32:  # flat node indices are int32
         raise SceneError(f"scene: 'dx' = {dx} is too small for the domain: the grid would have {grid.num_nodes:.3g} nodes")
@@ -380,6 +383,7 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
         substeps=substeps,
         frames=frames,
         collision=collision,
+        flip=flip,
     )
     params = {
         "gravity": jnp.asarray(gravity, dtype),

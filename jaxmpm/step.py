@@ -128,7 +128,8 @@ def p2g(
     tau: Float[Array, "N D D"],
     dt: float,
     contact: cpic.Contact | None = None,
-) -> tuple[Float[Array, " G"], Float[Array, "G D"]]:
+    unforced: bool = False,
+) -> tuple[Float[Array, " G"], Float[Array, "G D"]] | tuple[Float[Array, " G"], Float[Array, "G D"], Float[Array, "G D"]]:
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
@@ -137,8 +138,12 @@ def p2g(
     With a CPIC ``contact``, nodes on the other side of a collider from the particle receive
     nothing (no mass, momentum or stress): that share goes to the collider.
 
+    With ``unforced``, the momenta without the stress, ``w_ip m_p (v_p + C_p (x_i - x_p))``
+    ``(G, D)``, are scattered in the same rows (for :func:`flip_correction`).
+
     Returns:
-        node masses ``(G,)`` and momenta ``(G, D)`` (flat, C order).
+        node masses ``(G,)`` and momenta ``(G, D)`` (flat, C order), and with ``unforced``
+        the unforced momenta.
     """
     dim = state.dim
 
@@ -152,6 +157,10 @@ def p2g(
     # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
     columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
+    if unforced:  # the momentum without the stress: m_p (v_p + C_p (x_i - x_p))
+        mC = scale_rows(state.mass, state.C)
+        free_columns = [grid.dx * mC[:, :, d] for d in range(dim)]
+        free_base = scale_rows(state.mass, state.v) - grid.dx * sum(scale_rows(st.fx[d], mC[:, :, d]) for d in range(dim))
     incompatible = None if contact is None else contact.incompatible_mask()
     # Stored once, and in forward mode their k tangents per offset: each row fusion would
     # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
@@ -162,8 +171,13 @@ def p2g(
         for d, od in enumerate(offset):
             if od:
                 momentum = momentum + od * columns[d]
-        rows.append(scale_rows(weight, jnp.concatenate([state.mass[:, None], momentum], axis=-1)))
+        cols = [state.mass[:, None], momentum]
+        if unforced:
+            cols.append(free_base + sum(od * free_columns[d] for d, od in enumerate(offset) if od))
+        rows.append(scale_rows(weight, jnp.concatenate(cols, axis=-1)))
     packed = scatter_stencil(grid, st, rows)
+    if unforced:
+        return packed[:, 0], packed[:, 1:1 + dim], packed[:, 1 + dim:]
     return packed[:, 0], packed[:, 1:]
 
 
@@ -370,6 +384,25 @@ def g2p(
     return v, C
 
 
+def flip_correction(
+    grid: Grid, st: Stencil, state: State, mass: Float[Array, " G"], free_momentum: Float[Array, "G D"],
+    ghost: cpic.GhostNodes | None,
+) -> Float[Array, "N D"]:
+    """What one transfer filtered out of the particles' own velocities, ``v_p - sum_i w_ip v*_i``
+    ``(N, D)`` m/s, ``v*_i`` the node velocities before any force (``free_momentum``: the APIC
+    momentum alone, ``(G, D)``, over the node masses ``(G,)``). APIC's velocity plus ``alpha``
+    times this is the FLIP/APIC blend ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))``
+    (:attr:`jaxmpm.Model.flip`). A particle's incompatible (CPIC ghost) nodes count as
+    carrying ``v_p``."""
+    occupied = mass > MASS_EPS * grid.dx**grid.dim
+    v_star = jnp.where(occupied[:, None], free_momentum / jnp.where(occupied, mass, 1.0)[:, None], 0.0)
+    incompatible = None if ghost is None else ghost.contact.incompatible_mask()
+    back, _ = stencil_moments(st, incompatible, gather_rows(v_star, stencil_index(grid, st)))
+    if ghost is None:
+        return state.v - back
+    return scale_rows(1.0 - sum(ghost.weight), state.v) - back
+
+
 def ghost_nodes(
     model: Model, params: Params, state: State, st: Stencil, tau: Float[Array, "N D D"], contact: cpic.Contact | None
 ) -> cpic.GhostNodes | None:
@@ -458,13 +491,18 @@ def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, 
         F, aux, tau = material_update(model, params, state)
         tau = _ext.stress(model, params, state, F, aux, tau)  # extensions: rate_dependence, heterogeneity
     with jax.named_scope("p2g"):
-        mass, momentum = p2g(grid, st, state, tau, dt, contact)
+        if model.flip:
+            mass, momentum, free_momentum = p2g(grid, st, state, tau, dt, contact, unforced=True)
+        else:
+            mass, momentum = p2g(grid, st, state, tau, dt, contact)
         rigid = p2g_boundary(model, state, state.time)
     with jax.named_scope("grid_update"):
         grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
     with jax.named_scope("g2p"):
         ghost = ghost_nodes(model, params, state, st, tau, contact)
         v, C = g2p(grid, st, grid_v, ghost)
+        if model.flip:
+            v = v + model.flip * flip_correction(grid, st, state, mass, free_momentum, ghost)
         C = _ext.affine(model, params, C)  # extensions: damping
     with jax.named_scope("advect"):
         x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))

@@ -336,6 +336,8 @@ BAD_SCENES = [
     ("substeps-fraction", _set(("substeps",), 2.5), ["'substeps'", "2.5"]),
     # out-of-range parameters
     ("dx-zero", _set(("dx",), 0.0), ["'dx'", "> 0"]),
+    ("flip-one", _set(("flip",), 1.0), ["'flip'", "[0, 1)", "1.0"]),
+    ("flip-string", _set(("flip",), "yes"), ["'flip'", "'yes'"]),
     ("dx-negative", _set(("dx",), -0.1), ["'dx'", "-0.1"]),
     ("dx-tiny", _set(("dx",), 1e-9), ["'dx'", "1e-09", "too small"]),
     ("frames-one", _set(("frames",), 1), ["'frames'", ">= 2"]),
