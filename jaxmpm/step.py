@@ -129,7 +129,7 @@ def p2g(
     dt: float,
     contact: cpic.Contact | None = None,
     unforced: bool = False,
-) -> tuple[Float[Array, " G"], Float[Array, "G D"]] | tuple[Float[Array, " G"], Float[Array, "G D"], Float[Array, "G D"]]:
+) -> tuple[Float[Array, " G"], Float[Array, "G D"]] | tuple[Float[Array, " G"], Float[Array, "G D"], ...]:
     """Scatter mass and momentum (MLS fused stress + APIC affine term) to the grid.
 
     ``A_p = -dt V_p^0 (4/dx^2) tau_p + m_p C_p``; node i receives
@@ -160,7 +160,8 @@ def p2g(
     if unforced:  # the momentum without the stress: m_p (v_p + C_p (x_i - x_p))
         mC = scale_rows(state.mass, state.C)
         free_columns = [grid.dx * mC[:, :, d] for d in range(dim)]
-        free_base = scale_rows(state.mass, state.v) - grid.dx * sum(scale_rows(st.fx[d], mC[:, :, d]) for d in range(dim))
+        mC_fx = sum(scale_rows(st.fx[d], mC[:, :, d]) for d in range(dim))
+        free_base = scale_rows(state.mass, state.v) - grid.dx * mC_fx
     incompatible = None if contact is None else contact.incompatible_mask()
     # Stored once, and in forward mode their k tangents per offset: each row fusion would
     # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
