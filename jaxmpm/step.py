@@ -157,11 +157,14 @@ def p2g(
     # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
     columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
-    if unforced:  # the momentum without the stress: m_p (v_p + C_p (x_i - x_p))
-        mC = scale_rows(state.mass, state.C)
-        free_columns = [grid.dx * mC[:, :, d] for d in range(dim)]
-        mC_fx = sum(scale_rows(st.fx[d], mC[:, :, d]) for d in range(dim))
-        free_base = scale_rows(state.mass, state.v) - grid.dx * mC_fx
+    if unforced:  # the momentum without the stress, m_p (v_p + C_p (x_i - x_p)), the same way
+
+        def free_terms(state, fx):
+            mC = scale_rows(state.mass, state.C)
+            mC_fx = sum(scale_rows(fx[d], mC[:, :, d]) for d in range(dim))
+            return [grid.dx * mC[:, :, d] for d in range(dim)], scale_rows(state.mass, state.v) - grid.dx * mC_fx
+
+        free_columns, free_base = compute_once(free_terms, state, st.fx, token=always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
     # Stored once, and in forward mode their k tangents per offset: each row fusion would
     # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
