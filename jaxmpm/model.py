@@ -100,7 +100,7 @@ class Model(eqx.Module):
             APIC alone, the default and PAC-NeRF's transfer). APIC's transfers take a share of
             the kinetic energy out at every step, whatever dt, so at fixed dx a finer dt adds
             numerical viscosity; a blend of 0.95-0.99 keeps most of it (docs/materials.md,
-            "Transfers"). A step costs 1.5x APIC's (25,000 particles, 3D).
+            "Transfers"). A step costs 1.35x APIC's (25,000 particles, 3D).
     """
 
     grid: Grid

@@ -361,8 +361,9 @@ def _domain_walls_jvp(grid: Grid, primals, tangents):
 
 
 def g2p(
-    grid: Grid, st: Stencil, grid_v: Float[Array, "G D"], ghost: cpic.GhostNodes | None = None
-) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]]:
+    grid: Grid, st: Stencil, grid_v: Float[Array, "G D"], ghost: cpic.GhostNodes | None = None,
+    also: Float[Array, "G E"] | None = None,
+) -> tuple[Float[Array, "N D"], Float[Array, "N D D"]] | tuple[Float[Array, "N D"], Float[Array, "N D D"], Array]:
     """Gather particle velocities and affine matrices ``C = 4/dx^2 sum w v_i (x_i - x_p)^T``.
 
     Moment form: with ``x_i - x_p = dx (o - fx)``, ``C = 4/dx (M - v fx^T)`` where
@@ -374,10 +375,17 @@ def g2p(
     loop skips them and their share is added at the end from their total weight ``W_c`` and
     moment ``M_c`` (:func:`jaxmpm.cpic.incompatible_moments`): ``v += W_c P_c``,
     ``C += 4/dx^2 P_c M_c^T``.
+
+    ``also``: a second node table ``(G, E)`` read in the same gather; its plain weighted sum
+    over the compatible nodes ``(N, E)`` is returned third.
     """
-    values = gather_rows(grid_v, stencil_index(grid, st))
+    dim = grid.dim
+    table = grid_v if also is None else jnp.concatenate([grid_v, also], axis=-1)
+    values = gather_rows(table, stencil_index(grid, st))
     incompatible = None if ghost is None else ghost.contact.incompatible_mask()
     v, moments = stencil_moments(st, incompatible, values)
+    if also is not None:
+        v, extra, moments = v[:, :dim], v[:, dim:], moments[:, :dim]
     fx = jnp.stack(st.fx, axis=-1)
     C = (4.0 / grid.dx) * (moments - matmul(v[:, :, None], fx[:, None, :]))
     for c in range(0 if ghost is None else len(ghost.kinds)):
@@ -385,23 +393,25 @@ def g2p(
         P = compute_once(lambda g, c=c: g.projected(c, grid.dx), ghost, token=always_true(st.base))
         v = v + scale_rows(ghost.weight[c], P)
         C = C + matmul((4.0 / grid.dx) * P[:, :, None], ghost.moment[c][:, None, :])
-    return v, C
+    return (v, C) if also is None else (v, C, extra)
+
+
+def unforced_velocity(grid: Grid, mass: Float[Array, " G"], free_momentum: Float[Array, "G D"]) -> Float[Array, "G D"]:
+    """``v*_i``: the node velocities of the APIC momentum alone, before any force, ``(G, D)``
+    m/s (zero on empty nodes)."""
+    occupied = mass > MASS_EPS * grid.dx**grid.dim
+    return scale_rows(jnp.where(occupied, 1.0 / jnp.where(occupied, mass, 1.0), 0.0), free_momentum)
 
 
 def flip_correction(
-    grid: Grid, st: Stencil, state: State, mass: Float[Array, " G"], free_momentum: Float[Array, "G D"],
-    ghost: cpic.GhostNodes | None,
+    state: State, back: Float[Array, "N D"], ghost: cpic.GhostNodes | None
 ) -> Float[Array, "N D"]:
     """What one transfer filtered out of the particles' own velocities, ``v_p - sum_i w_ip v*_i``
-    ``(N, D)`` m/s, ``v*_i`` the node velocities before any force (``free_momentum``: the APIC
-    momentum alone, ``(G, D)``, over the node masses ``(G,)``). APIC's velocity plus ``alpha``
-    times this is the FLIP/APIC blend ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))``
+    ``(N, D)`` m/s, from ``back = sum_i w_ip v*_i`` over the compatible nodes
+    (:func:`unforced_velocity`, read by :func:`g2p`). APIC's velocity plus ``alpha`` times this
+    is the FLIP/APIC blend ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))``
     (:attr:`jaxmpm.Model.flip`). A particle's incompatible (CPIC ghost) nodes count as
     carrying ``v_p``."""
-    occupied = mass > MASS_EPS * grid.dx**grid.dim
-    v_star = jnp.where(occupied[:, None], free_momentum / jnp.where(occupied, mass, 1.0)[:, None], 0.0)
-    incompatible = None if ghost is None else ghost.contact.incompatible_mask()
-    back, _ = stencil_moments(st, incompatible, gather_rows(v_star, stencil_index(grid, st)))
     if ghost is None:
         return state.v - back
     return scale_rows(1.0 - sum(ghost.weight), state.v) - back
@@ -504,9 +514,11 @@ def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, 
         grid_v = grid_update(model, params, mass, momentum, state.time, rigid)
     with jax.named_scope("g2p"):
         ghost = ghost_nodes(model, params, state, st, tau, contact)
-        v, C = g2p(grid, st, grid_v, ghost)
         if model.flip:
-            v = v + model.flip * flip_correction(grid, st, state, mass, free_momentum, ghost)
+            v, C, back = g2p(grid, st, grid_v, ghost, also=unforced_velocity(grid, mass, free_momentum))
+            v = v + model.flip * flip_correction(state, back, ghost)
+        else:
+            v, C = g2p(grid, st, grid_v, ghost)
         C = _ext.affine(model, params, C)  # extensions: damping
     with jax.named_scope("advect"):
         x = advect(grid, state.x, v, dt, penetration_correction(model, contact, v))
