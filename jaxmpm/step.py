@@ -403,18 +403,13 @@ def unforced_velocity(grid: Grid, mass: Float[Array, " G"], free_momentum: Float
     return scale_rows(jnp.where(occupied, 1.0 / jnp.where(occupied, mass, 1.0), 0.0), free_momentum)
 
 
-def flip_correction(
-    state: State, back: Float[Array, "N D"], ghost: cpic.GhostNodes | None
-) -> Float[Array, "N D"]:
+def flip_correction(state: State, back: Float[Array, "N D"]) -> Float[Array, "N D"]:
     """What one transfer filtered out of the particles' own velocities, ``v_p - sum_i w_ip v*_i``
-    ``(N, D)`` m/s, from ``back = sum_i w_ip v*_i`` over the compatible nodes
-    (:func:`unforced_velocity`, read by :func:`g2p`). APIC's velocity plus ``alpha`` times this
-    is the FLIP/APIC blend ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))``
-    (:attr:`jaxmpm.Model.flip`). A particle's incompatible (CPIC ghost) nodes count as
-    carrying ``v_p``."""
-    if ghost is None:
-        return state.v - back
-    return scale_rows(1.0 - sum(ghost.weight), state.v) - back
+    ``(N, D)`` m/s, from ``back = sum_i w_ip v*_i`` (:func:`unforced_velocity`, read by
+    :func:`g2p`). APIC's velocity plus ``alpha`` times this is the FLIP/APIC blend
+    ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))`` (:attr:`jaxmpm.Model.flip`;
+    refused with CPIC colliders)."""
+    return state.v - back
 
 
 def ghost_nodes(
@@ -516,7 +511,7 @@ def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, 
         ghost = ghost_nodes(model, params, state, st, tau, contact)
         if model.flip:
             v, C, back = g2p(grid, st, grid_v, ghost, also=unforced_velocity(grid, mass, free_momentum))
-            v = v + model.flip * flip_correction(state, back, ghost)
+            v = v + model.flip * flip_correction(state, back)
         else:
             v, C = g2p(grid, st, grid_v, ghost)
         C = _ext.affine(model, params, C)  # extensions: damping
