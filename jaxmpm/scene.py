@@ -20,7 +20,7 @@ from . import memory
 from .colliders import COLLIDER_TYPES, CONTACTS, load_mesh, place, resolve_path, vector
 from .constitutive import MATERIALS
 from .errors import JaxmpmWarning, SceneError
-from .model import COLLISION_MODES, FLIP_WITH_CPIC, Body, Collision, Model, Params, contact_notes, flip_unsupported
+from .model import COLLISION_MODES, Body, Collision, Model, Params, contact_notes
 from .parameters import DENSITY, FRICTION, RESTITUTION, Parameter
 from .state import Grid
 
@@ -367,8 +367,6 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
         collider, cparams = _build_collider(cspec, k, dim, base_dir, dtype)
         colliders.append(collider)
         collider_params.append(cparams)
-    if flip and flip_unsupported(collision, colliders):
-        raise SceneError(f"scene: 'flip' = {flip}: {FLIP_WITH_CPIC}")
     num_particles = sum(len(b.x0) for b in bodies)
     num_fields = sum(1 for c in collider_specs if c.get("type") != "plane")
     memory.check(memory.estimate(dim, num_particles, grid.num_nodes, frames, num_fields, itemsize))

@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import cpic
 from . import extensions as _ext
-from .colliders import Plane, project_velocity
+from .colliders import Plane, project_velocity, row_matvec
 from .constitutive.base import matmul
 from .fusion import always_true, compute_once, scale_rows
 from .model import Collision, Model, Params
@@ -403,13 +403,25 @@ def unforced_velocity(grid: Grid, mass: Float[Array, " G"], free_momentum: Float
     return scale_rows(jnp.where(occupied, 1.0 / jnp.where(occupied, mass, 1.0), 0.0), free_momentum)
 
 
-def flip_correction(state: State, back: Float[Array, "N D"]) -> Float[Array, "N D"]:
+def flip_correction(
+    state: State, back: Float[Array, "N D"], ghost: cpic.GhostNodes | None, dx: float
+) -> Float[Array, "N D"]:
     """What one transfer filtered out of the particles' own velocities, ``v_p - sum_i w_ip v*_i``
-    ``(N, D)`` m/s, from ``back = sum_i w_ip v*_i`` (:func:`unforced_velocity`, read by
-    :func:`g2p`). APIC's velocity plus ``alpha`` times this is the FLIP/APIC blend
-    ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))`` (:attr:`jaxmpm.Model.flip`;
-    refused with CPIC colliders)."""
-    return state.v - back
+    ``(N, D)`` m/s, from ``back = sum_i w_ip v*_i`` over the compatible nodes
+    (:func:`unforced_velocity`, read by :func:`g2p`). APIC's velocity plus ``alpha`` times this
+    is the FLIP/APIC blend ``(1 - alpha) v_APIC + alpha (v_p + sum w (v_i - v*_i))``
+    (:attr:`jaxmpm.Model.flip`).
+
+    A particle's incompatible (CPIC ghost) nodes hold, before any force, its own affine
+    velocity ``v_p + C_p (x_i - x_p)`` (:class:`jaxmpm.cpic.GhostNodes`): their share of
+    ``sum w v*`` is ``W_c v_p + C_p M_c``. (Counting them as ``v_p`` alone fed the particle's
+    velocity gradient back into its velocity at every substep; an elastic block dropped on a
+    CPIC box then went NaN within 22-42 frames, measured in session 55.)
+    """
+    out = state.v - back
+    for c in range(0 if ghost is None else len(ghost.kinds)):
+        out = out - scale_rows(ghost.weight[c], state.v) - dx * row_matvec(state.C, ghost.moment[c])
+    return out
 
 
 def ghost_nodes(
@@ -511,7 +523,7 @@ def step_with_speed(model: Model, params: Params, state: State) -> tuple[State, 
         ghost = ghost_nodes(model, params, state, st, tau, contact)
         if model.flip:
             v, C, back = g2p(grid, st, grid_v, ghost, also=unforced_velocity(grid, mass, free_momentum))
-            v = v + model.flip * flip_correction(state, back)
+            v = v + model.flip * flip_correction(state, back, ghost, grid.dx)
         else:
             v, C = g2p(grid, st, grid_v, ghost)
         C = _ext.affine(model, params, C)  # extensions: damping

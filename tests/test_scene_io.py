@@ -338,8 +338,6 @@ BAD_SCENES = [
     ("dx-zero", _set(("dx",), 0.0), ["'dx'", "> 0"]),
     ("flip-one", _set(("flip",), 1.0), ["'flip'", "[0, 1)", "1.0"]),
     ("flip-string", _set(("flip",), "yes"), ["'flip'", "'yes'"]),
-    ("flip-with-cpic", lambda s: {**s, "flip": 0.9, "colliders": [{"type": "box", "lo": [0.0, 0.0], "hi": [1.0, 0.1]}]},
-     ["'flip' = 0.9", "not supported with CPIC colliders", "'grid'"]),
     ("dx-negative", _set(("dx",), -0.1), ["'dx'", "-0.1"]),
     ("dx-tiny", _set(("dx",), 1e-9), ["'dx'", "1e-09", "too small"]),
     ("frames-one", _set(("frames",), 1), ["'frames'", ">= 2"]),

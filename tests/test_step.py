@@ -427,12 +427,15 @@ def test_a_flip_blend_keeps_the_energy_apic_transfers_lose_and_converges_as_dt_f
 
 
 @pytest.mark.x64
-@pytest.mark.parametrize("flip", [0.0, 0.95])
-def test_flip_blend_gradient_matches_central_differences(flip):
+@pytest.mark.parametrize("flip, box", [(0.0, False), (0.95, False), (0.95, True)])
+def test_flip_blend_gradient_matches_central_differences(flip, box):
     """The blend's extra transfer is differentiable like the rest of the step: the gradient of
     a 2D elastic block's final centre of mass with respect to E and its initial velocity
-    matches central differences (float64)."""
+    matches central differences (float64), in free flight and landing on a CPIC box (its
+    ghost nodes' share)."""
     spec = block_spec(2, {"model": "elastic", "E": 2e3, "nu": 0.3}, frames=3, substeps=20, velocity=[0.5, -1.0])
+    if box:
+        spec["colliders"] = [{"type": "box", "lo": [0.0, 0.0], "hi": [1.0, 0.2], "contact": "slip"}]
     scene = load_scene({**spec, "flip": flip}, dtype=jnp.float64)
 
     def com(theta):
