@@ -2,7 +2,7 @@
 does not converge as dt falls.
 
     python benchmarks/transfer_dissipation.py [--dx 0.02] [--float32] [--flip 0.99]
-    python benchmarks/transfer_dissipation.py --case-study-3d [--dx 0.05]
+    python benchmarks/transfer_dissipation.py --case-study-3d [--dx 0.05] [--flip 0.99]
 
 A 2D dam break (a 0.4 m water column, PAC-NeRF's Newtonian fluid with water's viscosity, a
 weakly compressible bulk modulus with sqrt(kappa / rho) = 6 sqrt(g h)) is run for 0.2 s
@@ -69,7 +69,7 @@ def added_per_step(make_spec, start, dx: float, dtype, substeps: list[int]) -> N
         print(f"| {short.model.dt:.1e} | {added:+.3e} | {added / ke0:+.2e} |", flush=True)
 
 
-def case_study_3d(dx: float) -> None:
+def case_study_3d(dx: float, flip: float = 0.0) -> None:
     import pathlib
     import sys
 
@@ -79,10 +79,10 @@ def case_study_3d(dx: float) -> None:
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "examples"))
     import dam_break_3d_obstacle as case
 
-    base = case.scene_spec(dx=dx, t_end=0.5)
+    base = case.scene_spec(dx=dx, t_end=0.5, flip=flip)
     scene = load_scene(dict(base, substeps=88))
     start = simulate(scene.model, scene.params).final
-    print(f"3D dam break with the box, dx = {dx} m, {scene.model.num_particles} particles, float32; "
+    print(f"3D dam break with the box, dx = {dx} m, flip = {flip}, {scene.model.num_particles} particles, float32; "
           f"kinetic energy at t = {float(start.time):.2f} s: {kinetic(start, dx):.3f} J")
     added_per_step(lambda n: dict(base, substeps=n, frames=2), start, dx, jnp.float32,
                    [88, 880, 8800, 88000, 880000])
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     ap.add_argument("--flip", type=float, default=0.0, help="FLIP share of the velocity update (Model.flip; 0 = APIC)")
     args = ap.parse_args(argv)
     if args.case_study_3d:
-        case_study_3d(args.dx or 0.05)
+        case_study_3d(args.dx or 0.05, args.flip)
         return 0
     dx = args.dx or 0.02
     if not args.float32:

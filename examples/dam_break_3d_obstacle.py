@@ -14,7 +14,8 @@ in reasonable time (``--dx``, default 0.1 m: about 2 600 particles, 1 100 steps 
 run below takes about 85 s on 2 idle CPU cores). ``--resolution-check`` re-simulates its base and
 extended models at dx/2; ``--dx 0.05 --substeps 88`` runs the whole study there (42 minutes:
 docs/case_studies/dam_break_3d_obstacle.md, "At twice the resolution"); ``--dt-series 88,176,352``
-re-simulates a report's models at those substep counts (is the error converged in dt?).
+re-simulates a report's models at those substep counts (is the error converged in dt?), with
+``--flip 0.99`` under a FLIP blend (docs/materials.md, "Transfers").
 
 The base model has no free parameter by default: the water keeps its own viscosity (``--fit
 mu`` fits it, which can let an unphysically large viscosity absorb the discrepancy, as it does in 2D; the
@@ -53,7 +54,8 @@ def load_gauges(t_end: float = 1.2, every: int = 20):
     return d[:, 0], d[:, 1:5].T  # columns: t, H1, H2, H3, H4
 
 
-def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2e-3, half: bool = True) -> dict:
+def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2e-3, half: bool = True,
+               flip: float = 0.0) -> dict:
     u = 2.0 * math.sqrt(G * H)  # Ritter front speed
     c = 6.0 * u  # sqrt(kappa / rho); the sound speed is sqrt(7 kappa / rho) = 16 u (pressure kappa (J^-7 - 1))
     dt = 0.3 * dx / (c + u)
@@ -70,6 +72,7 @@ def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2
         "frames": int(math.ceil(t_end / frame_dt)) + 1,
         "frame_dt": frame_dt,
         "substeps": int(math.ceil(frame_dt / dt)),
+        "flip": flip,
         "bodies": [{
             "name": "water", "shape": "box", "lo": [1.992, 0.0, 0.0], "hi": [3.22, H, width], "ppc": ppc,
             "material": {"model": "newtonian", "mu": mu, "kappa": 1000.0 * c**2, "density": 1000.0},
@@ -98,12 +101,13 @@ def observation(spec: dict, t_end: float):
                        scene=json.dumps(spec))
 
 
-def sequence(dx: float, t_end: float, substeps: int | None = None):
-    """The experiment as a ``discover`` sequence; ``substeps`` per frame overrides the scene's rule."""
+def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0):
+    """The experiment as a ``discover`` sequence; ``substeps`` per frame overrides the scene's
+    rule; ``flip`` is the scene's FLIP blend (0: APIC, docs/materials.md, "Transfers")."""
     from jaxmpm.discover import Sequence
     from jaxmpm.scene import load_scene
 
-    spec = scene_spec(dx, t_end)
+    spec = scene_spec(dx, t_end, flip=flip)
     if substeps:
         spec["substeps"] = int(substeps)
     sc = load_scene(spec)
@@ -111,7 +115,7 @@ def sequence(dx: float, t_end: float, substeps: int | None = None):
 
 
 def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", substeps: int | None = None,
-            extended: dict[str, float] | None = None) -> dict:
+            extended: dict[str, float] | None = None, flip: float = 0.0) -> dict:
     """Per-gauge RMS errors and arrival times (first time the height exceeds ``wet`` metres,
     measured and simulated alike; a particle layer is about dx/4 thick) of the base and the
     extended model from ``report.json``, simulated at ``dx`` (``summary{tag}.json``,
@@ -121,7 +125,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
     keeps the value fitted at the report's dx) at twice the resolution. ``substeps`` per frame
     overrides the scene's rule (a run that fails the health check is rerun at dt/2 and says
     so); ``extended`` (``{"ext.key": value}``, the report's naming) replaces the report's
-    extended model, e.g. with a refit that was not selected."""
+    extended model, e.g. with a refit that was not selected; ``flip`` runs both with a FLIP blend."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -146,7 +150,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
             t0 = float(np.asarray(v))
         else:
             values.setdefault(e, {})[key] = np.asarray(v)
-    seq = sequence(dx, t_end, substeps)
+    seq = sequence(dx, t_end, substeps, flip)
     m = seq.model
     tt = np.arange(m.frames) * m.frame_dt
     t_obs, h_obs = load_gauges(t_end, every=1)
@@ -213,10 +217,12 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
     return res
 
 
-def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: dict[str, float] | None = None) -> dict:
+def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: dict[str, float] | None = None,
+              flip: float = 0.0) -> dict:
     """Is the held-out error converged in dt? :func:`summary` at each substep count (its files
     tagged ``_substeps{n}``), and ``dt_series.json`` / ``dt_series.png``: the held-out RMS
-    error over all four gauges of the base and the extended model against dt."""
+    error over all four gauges of the base and the extended model against dt. With a FLIP
+    blend ``flip`` every file name ends in ``_flip{flip}``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -224,8 +230,9 @@ def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: d
 
     out_dir = Path(out_dir)
     rows = []
+    suffix = f"_flip{flip:g}" if flip else ""
     for n in substeps:
-        r = summary(out_dir, dx, t_end, tag=f"_substeps{n}", substeps=n, extended=extended)
+        r = summary(out_dir, dx, t_end, tag=f"_substeps{n}{suffix}", substeps=n, extended=extended, flip=flip)
         rows.append({"substeps_asked": n, "substeps": r["substeps"], "causes": r["causes"],
                      "rms_all_heldout_window_m": r["rms_all_heldout_window_m"],
                      "unstable_at_fewer_substeps": r["unstable_at_fewer_substeps"]})
@@ -243,12 +250,12 @@ def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: d
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title(f"dx = {dx} m: the held-out error against dt", fontsize=10)
+    ax.set_title(f"dx = {dx} m: the held-out error against dt" + (f" (flip = {flip:g})" if flip else ""), fontsize=10)
     fig.tight_layout()
-    fig.savefig(out_dir / "dt_series.png", dpi=110)
+    fig.savefig(out_dir / f"dt_series{suffix}.png", dpi=110)
     plt.close(fig)
-    res = {"dx": dx, "t_end": t_end, "frame_dt": frame_dt, "extended": extended, "rows": rows}
-    (out_dir / "dt_series.json").write_text(json.dumps(res, indent=1))
+    res = {"dx": dx, "t_end": t_end, "frame_dt": frame_dt, "extended": extended, "flip": flip, "rows": rows}
+    (out_dir / f"dt_series{suffix}.json").write_text(json.dumps(res, indent=1))
     return res
 
 
@@ -286,6 +293,9 @@ def main(argv=None) -> int:
     ap.add_argument("--extended", default="",
                     help="with --dt-series or --summary-only: the extended model to use instead of the report's, as "
                          "ext.key=value pairs (comma-separated), e.g. collider_friction.floor=0.079,collider_friction.box=0")
+    ap.add_argument("--flip", type=float, default=0.0,
+                    help="with --dt-series: a FLIP blend in [0, 1) (default 0, APIC; docs/materials.md, 'Transfers'); "
+                         "the files' names end in _flip<value>")
     args = ap.parse_args(argv)
     try:
         extended = {k: float(v) for k, v in (kv.split("=") for kv in args.extended.split(",") if kv)} or None
@@ -294,8 +304,12 @@ def main(argv=None) -> int:
         ap.error(f"--extended takes ext.key=value pairs and --dt-series integers ({e})")
     if any(n < 1 for n in counts):
         ap.error("--dt-series takes positive substep counts")
+    if not 0.0 <= args.flip < 1.0:
+        ap.error(f"--flip takes a value in [0, 1), got {args.flip}")
+    if args.flip and not counts:
+        ap.error("--flip is offered with --dt-series only")
     if counts:
-        print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended), indent=1))
+        print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended, args.flip), indent=1))
         return 0
     if args.summary_only:
         print(json.dumps(summary(args.out, args.dx, args.t_end, substeps=args.substeps, extended=extended), indent=1))
