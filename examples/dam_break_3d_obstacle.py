@@ -84,12 +84,19 @@ def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2
     }
 
 
-def gauge_probes(dx: float, half: bool = True):
-    """Gauge heights on the centre line: the highest water within one cell of the gauge."""
-    from jaxmpm.identify import gauge
+#: How a simulated gauge reads the water: ``top``, the highest particle within one cell of it
+#: (spray counts); ``depth``, the depth the water around it would fill (``depth_gauge``).
+READINGS = ("top", "depth")
 
-    z = 0.5 if half else 0.5
-    return {f"gauge_{k}": gauge(x, z, width=2.0 * dx) for k, x in GAUGES.items()}
+
+def gauge_probes(dx: float, reading: str = "top"):
+    """Gauge heights on the centre line (the symmetry plane z = 0.5), read as ``reading``
+    (:data:`READINGS`)."""
+    from jaxmpm.identify import depth_gauge, gauge
+
+    if reading == "depth":
+        return {f"gauge_{k}": depth_gauge(x, 0.5, width=dx) for k, x in GAUGES.items()}
+    return {f"gauge_{k}": gauge(x, 0.5, width=2.0 * dx) for k, x in GAUGES.items()}
 
 
 def observation(spec: dict, t_end: float):
@@ -101,9 +108,10 @@ def observation(spec: dict, t_end: float):
                        scene=json.dumps(spec))
 
 
-def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0):
+def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0, reading: str = "top"):
     """The experiment as a ``discover`` sequence; ``substeps`` per frame overrides the scene's
-    rule; ``flip`` is the scene's FLIP blend (0: APIC, docs/materials.md, "Transfers")."""
+    rule; ``flip`` is the scene's FLIP blend (0: APIC, docs/materials.md, "Transfers");
+    ``reading`` how its gauges read the water (:data:`READINGS`)."""
     from jaxmpm.discover import Sequence
     from jaxmpm.scene import load_scene
 
@@ -111,11 +119,12 @@ def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float =
     if substeps:
         spec["substeps"] = int(substeps)
     sc = load_scene(spec)
-    return Sequence(sc.model, sc.params, observation(spec, t_end), name="spheric_test2", probes=gauge_probes(dx))
+    return Sequence(sc.model, sc.params, observation(spec, t_end), name="spheric_test2",
+                    probes=gauge_probes(dx, reading))
 
 
 def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", substeps: int | None = None,
-            extended: dict[str, float] | None = None, flip: float = 0.0) -> dict:
+            extended: dict[str, float] | None = None, flip: float = 0.0, reading: str = "top") -> dict:
     """Per-gauge RMS errors and arrival times (first time the height exceeds ``wet`` metres,
     measured and simulated alike; a particle layer is about dx/4 thick) of the base and the
     extended model from ``report.json``, simulated at ``dx`` (``summary{tag}.json``,
@@ -125,7 +134,8 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
     keeps the value fitted at the report's dx) at twice the resolution. ``substeps`` per frame
     overrides the scene's rule (a run that fails the health check is rerun at dt/2 and says
     so); ``extended`` (``{"ext.key": value}``, the report's naming) replaces the report's
-    extended model, e.g. with a refit that was not selected; ``flip`` runs both with a FLIP blend."""
+    extended model, e.g. with a refit that was not selected; ``flip`` runs both with a FLIP blend,
+    and ``reading`` is how the simulated gauges read (:data:`READINGS`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -150,11 +160,11 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
             t0 = float(np.asarray(v))
         else:
             values.setdefault(e, {})[key] = np.asarray(v)
-    seq = sequence(dx, t_end, substeps, flip)
+    seq = sequence(dx, t_end, substeps, flip, reading)
     m = seq.model
     tt = np.arange(m.frames) * m.frame_dt
     t_obs, h_obs = load_gauges(t_end, every=1)
-    probes = gauge_probes(dx)
+    probes = gauge_probes(dx, reading)
     vol0 = jnp.concatenate([jnp.asarray(b.vol0) for b in m.bodies])
     runs = {"base": (seq.params, 0.0)}
     if causes:
@@ -180,7 +190,8 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
         i = np.flatnonzero(h > wet)
         return float(t[i[0]]) if len(i) else None
 
-    res = {"dx": dx, "t_end": t_end, "wet_m": wet, "causes": causes, "t0": t0, "gauges": {},
+    res = {"dx": dx, "t_end": t_end, "flip": flip, "reading": reading, "wet_m": wet, "causes": causes, "t0": t0,
+           "gauges": {},
            "rms_all_heldout_window_m": {}, "substeps": res_substeps, "unstable_at_fewer_substeps": res_health}
     fig, axes = plt.subplots(2, 2, figsize=(9, 5.6), sharex=True)
     held = float(np.quantile(np.unique(load_gauges(t_end)[0]), 0.7))
@@ -218,11 +229,12 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
 
 
 def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: dict[str, float] | None = None,
-              flip: float = 0.0) -> dict:
+              flip: float = 0.0, reading: str = "top") -> dict:
     """Is the held-out error converged in dt? :func:`summary` at each substep count (its files
     tagged ``_substeps{n}``), and ``dt_series.json`` / ``dt_series.png``: the held-out RMS
     error over all four gauges of the base and the extended model against dt. With a FLIP
-    blend ``flip`` every file name ends in ``_flip{flip}``."""
+    blend ``flip`` every file name ends in ``_flip{flip}``, with ``reading = "depth"`` in
+    ``_depth``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -230,9 +242,10 @@ def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: d
 
     out_dir = Path(out_dir)
     rows = []
-    suffix = f"_flip{flip:g}" if flip else ""
+    suffix = (f"_flip{flip:g}" if flip else "") + ("_depth" if reading == "depth" else "")
     for n in substeps:
-        r = summary(out_dir, dx, t_end, tag=f"_substeps{n}{suffix}", substeps=n, extended=extended, flip=flip)
+        r = summary(out_dir, dx, t_end, tag=f"_substeps{n}{suffix}", substeps=n, extended=extended, flip=flip,
+                    reading=reading)
         rows.append({"substeps_asked": n, "substeps": r["substeps"], "causes": r["causes"],
                      "rms_all_heldout_window_m": r["rms_all_heldout_window_m"],
                      "unstable_at_fewer_substeps": r["unstable_at_fewer_substeps"]})
@@ -254,7 +267,8 @@ def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: d
     fig.tight_layout()
     fig.savefig(out_dir / f"dt_series{suffix}.png", dpi=110)
     plt.close(fig)
-    res = {"dx": dx, "t_end": t_end, "frame_dt": frame_dt, "extended": extended, "flip": flip, "rows": rows}
+    res = {"dx": dx, "t_end": t_end, "frame_dt": frame_dt, "extended": extended, "flip": flip, "reading": reading,
+           "rows": rows}
     (out_dir / f"dt_series{suffix}.json").write_text(json.dumps(res, indent=1))
     return res
 
@@ -294,8 +308,12 @@ def main(argv=None) -> int:
                     help="with --dt-series or --summary-only: the extended model to use instead of the report's, as "
                          "ext.key=value pairs (comma-separated), e.g. collider_friction.floor=0.079,collider_friction.box=0")
     ap.add_argument("--flip", type=float, default=0.0,
-                    help="with --dt-series: a FLIP blend in [0, 1) (default 0, APIC; docs/materials.md, 'Transfers'); "
+                    help="a FLIP blend in [0, 1) (default 0, APIC; docs/materials.md, 'Transfers'); with --dt-series "
                          "the files' names end in _flip<value>")
+    ap.add_argument("--reading", choices=READINGS, default="top",
+                    help="how a simulated gauge reads the water: 'top', the highest particle within a cell of it "
+                         "(default; spray counts), or 'depth', the depth the water around it would fill "
+                         "(jaxmpm.identify.depth_gauge); with --dt-series the files' names end in _depth")
     args = ap.parse_args(argv)
     try:
         extended = {k: float(v) for k, v in (kv.split("=") for kv in args.extended.split(",") if kv)} or None
@@ -306,21 +324,21 @@ def main(argv=None) -> int:
         ap.error("--dt-series takes positive substep counts")
     if not 0.0 <= args.flip < 1.0:
         ap.error(f"--flip takes a value in [0, 1), got {args.flip}")
-    if args.flip and not counts:
-        ap.error("--flip is offered with --dt-series only")
     if counts:
-        print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended, args.flip), indent=1))
+        print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended, args.flip, args.reading), indent=1))
         return 0
     if args.summary_only:
-        print(json.dumps(summary(args.out, args.dx, args.t_end, substeps=args.substeps, extended=extended), indent=1))
+        print(json.dumps(summary(args.out, args.dx, args.t_end, substeps=args.substeps, extended=extended,
+                                 flip=args.flip, reading=args.reading), indent=1))
         return 0
     if args.resolution_check:
-        print(json.dumps(summary(args.out, args.dx / 2, args.t_end, tag="_dx_half"), indent=1))
+        print(json.dumps(summary(args.out, args.dx / 2, args.t_end, tag="_dx_half", flip=args.flip,
+                                 reading=args.reading), indent=1))
         return 0
     from jaxmpm.discover import discover
     from jaxmpm.discover_report import write_report
 
-    seq = sequence(args.dx, args.t_end, args.substeps)
+    seq = sequence(args.dx, args.t_end, args.substeps, args.flip, args.reading)
     m = seq.model
     print(f"{m.num_particles} particles, grid {m.grid.shape}, {m.frames} frames x {m.substeps} substeps", file=sys.stderr)
     start = time.perf_counter()
@@ -332,11 +350,14 @@ def main(argv=None) -> int:
             f"{args.t_end} s). Base model: Newtonian water ("
             + (f"fitted: {args.fit}" if args.fit else "its own viscosity, `mu` = 2e-3 Pa·s in PAC-NeRF's convention, nothing fitted")
             + f"), instant release, free-slip floor and "
-            f"box, half the tank width (symmetry plane), dx = {args.dx} m ({m.num_particles} particles). "
-            "Data: examples/data/dam_break_3d_obstacle_spheric_test2_kleefsman/SOURCE.md.")
+            f"box, half the tank width (symmetry plane), dx = {args.dx} m ({m.num_particles} particles), "
+            + (f"a FLIP blend of {args.flip:g} in the transfers" if args.flip else "APIC transfers")
+            + ("; simulated gauges read the depth the water around them would fill. " if args.reading == "depth"
+               else "; simulated gauges read the highest particle within a cell. ")
+            + "Data: examples/data/dam_break_3d_obstacle_spheric_test2_kleefsman/SOURCE.md.")
     files = write_report(result, args.out, title="Case study: 3D dam break with a box obstacle (SPHERIC Test 2)",
                          data_note=note)
-    print("summary:", json.dumps(summary(args.out, args.dx, args.t_end)))
+    print("summary:", json.dumps(summary(args.out, args.dx, args.t_end, flip=args.flip, reading=args.reading)))
     print(result.verdict)
     print(f"wrote {files['report.md']}")
     return 0

@@ -79,14 +79,17 @@ def test_dam_break_3d_obstacle_builds_its_sequence_and_runs():
     assert x[-1, :, 0].min() < x[0, :, 0].min()  # the water moves towards the obstacle (−x)
 
 
-def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path):
+@pytest.mark.parametrize("reading", ["top", "depth"])
+def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path, reading):
     """``--summary-only`` re-simulates the base and the extended model of a ``report.json`` and
-    writes per-gauge errors and the gauge plot (it once crashed on the rollout's return type)."""
+    writes per-gauge errors and the gauge plot (it once crashed on the rollout's return type),
+    with either gauge reading (``--reading``)."""
     module = _script("dam_break_3d_obstacle")
     details = {"causes": ["collider_friction"],
                "extended_parameters": {"collider_friction.floor": 0.5, "collider_friction.box": 0.0}}
     (tmp_path / "report.json").write_text(json.dumps({"details": details}))
-    res = module.summary(tmp_path, dx=0.2, t_end=0.1, tag="_check")
+    res = module.summary(tmp_path, dx=0.2, t_end=0.1, tag="_check", reading=reading)
+    assert res["reading"] == reading and res["flip"] == 0.0
     assert (tmp_path / "gauges_check.png").stat().st_size > 0
     assert json.loads((tmp_path / "summary_check.json").read_text()) == res
     assert set(res["gauges"]) == set(module.GAUGES) and res["causes"] == ["collider_friction"] and res["dx"] == 0.2

@@ -13,6 +13,7 @@ from jaxmpm.observe import check_scene_compatible
 from jaxmpm.identify.residuals import (
     build_objective,
     chamfer_residuals,
+    depth_gauge,
     gauge,
     probe_function,
     register_probe,
@@ -54,6 +55,59 @@ def test_builtin_probes_measure_the_state(truth):
     # a gauge inside the block reads its top, one outside reads 0 (dry)
     assert float(probe_function("gauge@0.4")(state, scene.model)) == pytest.approx(x[:, 1].max() + h / 2, rel=1e-6)
     assert float(gauge(0.8)(state, scene.model)) == 0.0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_depth_gauge_reads_the_depth_of_the_column_and_not_its_spray(dim):
+    """``depth_gauge`` / ``depth@X[,Z]``: on a resting lattice it reads the block's depth
+    (0.2 m, 8 particle layers); 0 where dry; on the domain's face (a
+    symmetry plane) the whole column's depth, not half; in 3D without z, a line gauge (depth
+    times the block's share of the width). One particle 0.4 m above the column lifts
+    ``gauge`` to it and ``depth`` by its own volume only (V0 / dx^(D-1) at most)."""
+    scene = load_scene(block_spec(dim, dx=0.05, lo=[0.3, 0.1, 0.3][:dim], hi=[0.5, 0.3, 1.0][:dim]))
+    state = initial_state(scene.model, scene.params)
+    at = [0.4] if dim == 2 else [0.4, 0.6]
+    name = "depth@" + ",".join(map(str, at))
+    read = lambda probe, s=state: float(probe(s, scene.model))  # noqa: E731
+    assert read(probe_function(name)) == pytest.approx(0.2, rel=1e-5)
+    assert read(depth_gauge(0.8, *at[1:])) == 0.0
+    if dim == 3:
+        assert read(depth_gauge(0.4, 1.0)) == pytest.approx(0.2, rel=1e-5)  # on the domain's face
+        assert read(depth_gauge(0.4)) == pytest.approx(0.2 * 0.7, rel=1e-5)  # across the width
+    # a spray particle above the gauge
+    v0 = float(state.vol0[0])
+    spray = state.x[0].at[0].set(0.4).at[1].set(0.7)
+    if dim == 3:
+        spray = spray.at[2].set(0.6)
+    wet = _with_one_more(state, jnp.concatenate([state.x, spray[None]]), v0)
+    assert read(gauge(*at), wet) == pytest.approx(0.7 + 0.25 * 0.05, rel=1e-5)
+    added = read(depth_gauge(*at), wet) - read(depth_gauge(*at))
+    assert 0.0 < added <= v0 / 0.05 ** (dim - 1) * 1.0001
+
+
+def _with_one_more(state, x, v0):
+    """``state`` with positions ``x`` (one particle more, of volume ``v0``)."""
+    from jaxmpm.state import make_state
+
+    n = x.shape[0]
+    return make_state(x, jnp.zeros_like(x), jnp.full(n, 1000.0 * v0), jnp.full(n, v0))
+
+
+def test_a_depth_gauge_has_the_gradient_of_its_finite_differences(truth):
+    """The depth reading is continuous in the positions (a tent kernel): its derivative along
+    a random displacement of all particles matches central differences."""
+    scene, traj = truth
+    from jaxmpm.state import make_state
+
+    x = traj.x[-1]
+    state = make_state(x, traj.v[-1], traj.final.mass, traj.final.vol0)
+    probe = depth_gauge(0.41)
+    direction = jax.random.normal(jax.random.PRNGKey(0), x.shape) * 1e-3
+    of = lambda t: probe(make_state(x + t * direction, state.v, state.mass, state.vol0), scene.model)  # noqa: E731
+    slope = float(jax.grad(of)(0.0))
+    fd = (float(of(1e-2)) - float(of(-1e-2))) / 2e-2
+    assert abs(slope) > 1e-4
+    assert slope == pytest.approx(fd, rel=2e-2)
 
 
 def test_probe_registry_and_unknown_names(truth):

@@ -27,6 +27,7 @@ from .residuals import Objective as Objective
 from .residuals import back as back
 from .residuals import build_objective as build_objective
 from .residuals import centroid as centroid
+from .residuals import depth_gauge as depth_gauge
 from .residuals import front as front
 from .residuals import gauge as gauge
 from .residuals import probe_function as probe_function

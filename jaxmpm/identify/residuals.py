@@ -36,7 +36,8 @@ positions, velocities, masses and reference volumes, looked up by name
 (:func:`probe_function`): ``front_x`` (the largest x of any particle, plus half a particle
 spacing: the leading edge), ``back_x``, ``top_y``/``height`` (vertical), ``centroid_x``,
 ..., and parameterised names such as ``gauge@0.3`` (the height of the material column at
-x = 0.3 m; ``gauge@0.3,0.1`` at x = 0.3, z = 0.1 in 3D). Register others with
+x = 0.3 m: its highest particle; ``gauge@0.3,0.1`` at x = 0.3, z = 0.1 in 3D) and
+``depth@0.3`` (the depth its material would fill: :func:`depth_gauge`, blind to spray). Register others with
 :func:`register_probe` (e.g. ``register_probe("gauge_H2", gauge(0.582, 0.0))``) or pass
 ``probes={name: fn}`` to :func:`build_objective`.
 """
@@ -73,6 +74,7 @@ __all__ = [
     "top",
     "centroid",
     "gauge",
+    "depth_gauge",
     "frames_needed",
     "hermite",
     "chamfer_residuals",
@@ -173,6 +175,50 @@ def gauge(x: float, z: float | None = None, *, width: float | None = None, floor
     return fn
 
 
+def _tent(d, half_width: float):
+    """The tent kernel ``max(0, 1 - |d| / w) / w`` (unit integral, 1/m)."""
+    return jnp.maximum(1.0 - jnp.abs(d) / half_width, 0.0) / half_width
+
+
+def _tent_inside(centre: float, half_width: float, lo: float, hi: float) -> float:
+    """The share of the tent centred at ``centre`` that lies in ``[lo, hi]``."""
+
+    def below(s):  # the tent's integral up to s
+        t = min(max((s - centre) / half_width, -1.0), 1.0)
+        return 0.5 * (1.0 + t) ** 2 if t <= 0.0 else 1.0 - 0.5 * (1.0 - t) ** 2
+
+    return below(hi) - below(lo)
+
+
+def depth_gauge(x: float, z: float | None = None, *, width: float | None = None) -> ProbeFn:
+    """Water depth at ``x`` (and ``z`` in 3D): the depth the material around the gauge would
+    fill at its reference volume, m.
+
+    Each particle's reference volume ``V0`` is spread horizontally over a tent of half-width
+    ``width`` (default one grid cell, ``dx``) centred on the gauge: ``depth = sum_p V0_p
+    k(x_p - x) k(z_p - z) / s``, ``k`` the unit tent and ``s`` the share of the tent inside the
+    domain (a gauge on a wall or a symmetry plane reads the depth of its column, not half of
+    it). In 2D ``V0`` is an area and there is no ``z``; in 3D without ``z`` it is a line gauge
+    across the whole width (divided by the domain's extent in z). On a resting lattice of
+    particles it reads the material's depth exactly; unlike :func:`gauge` (the highest
+    particle), a few particles thrown above the column add only their own volume, and the
+    reading varies continuously with the positions (a gradient for fits).
+    """
+
+    def fn(state: State, model: Model):
+        grid = model.grid
+        w = grid.dx if width is None else width
+        weight = _tent(state.x[:, 0] - x, w) / _tent_inside(x, w, grid.lo[0], grid.hi[0])
+        if state.dim == 3:
+            if z is None:
+                weight = weight / (grid.hi[2] - grid.lo[2])
+            else:
+                weight = weight * _tent(state.x[:, 2] - z, w) / _tent_inside(z, w, grid.lo[2], grid.hi[2])
+        return jnp.sum(state.vol0 * weight)
+
+    return fn
+
+
 _REGISTRY: dict[str, ProbeFn] = {}
 
 
@@ -200,6 +246,8 @@ _PATTERNS: list[tuple[re.Pattern, Callable[..., ProbeFn]]] = [
     (re.compile(r"(?:top_y|height)"), lambda: top()),
     (re.compile(r"centroid_([xyz])"), lambda a: centroid(a)),
     (re.compile(r"gauge@([-+0-9.eE]+)(?:,([-+0-9.eE]+))?"), lambda x, z=None: gauge(float(x), None if z is None else float(z))),
+    (re.compile(r"depth@([-+0-9.eE]+)(?:,([-+0-9.eE]+))?"),
+     lambda x, z=None: depth_gauge(float(x), None if z is None else float(z))),
 ]
 
 
@@ -208,7 +256,8 @@ _BUILT: dict[str, ProbeFn] = {}
 
 def probe_names() -> list[str]:
     """The registered and built-in probe names (patterns shown with placeholders)."""
-    return sorted(_REGISTRY) + ["front_x|y|z", "back_x|y|z", "top_y", "height", "centroid_x|y|z", "gauge@X[,Z]"]
+    return sorted(_REGISTRY) + ["front_x|y|z", "back_x|y|z", "top_y", "height", "centroid_x|y|z", "gauge@X[,Z]",
+                                  "depth@X[,Z]"]
 
 
 def probe_function(name: str, extra: dict[str, ProbeFn] | None = None) -> ProbeFn:
