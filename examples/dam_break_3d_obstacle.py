@@ -357,7 +357,8 @@ def main(argv=None) -> int:
             + "Data: examples/data/dam_break_3d_obstacle_spheric_test2_kleefsman/SOURCE.md.")
     files = write_report(result, args.out, title="Case study: 3D dam break with a box obstacle (SPHERIC Test 2)",
                          data_note=note)
-    print("summary:", json.dumps(summary(args.out, args.dx, args.t_end, flip=args.flip, reading=args.reading)))
+    print("summary:", json.dumps(summary(args.out, args.dx, args.t_end, substeps=args.substeps, flip=args.flip,
+                                         reading=args.reading)))
     print(result.verdict)
     print(f"wrote {files['report.md']}")
     return 0
