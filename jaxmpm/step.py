@@ -147,37 +147,37 @@ def p2g(
     """
     dim = state.dim
 
-    def momentum_terms(state, tau, fx):
-        # ``A (x_i - x_p) = dx A (o - fx)``: ``A fx`` once, then per offset a sum of A's columns.
-        affine = affine_momentum(grid, state, tau, dt)
+    def terms(state, affine, fx):
+        # ``m v + A (x_i - x_p) = m v - dx A fx + dx A o``: ``A fx`` once, then per offset a sum
+        # of A's columns.
         columns = [grid.dx * affine[:, :, d] for d in range(dim)]
         affine_fx = sum(scale_rows(fx[d], affine[:, :, d]) for d in range(dim))
         return columns, scale_rows(state.mass, state.v) - grid.dx * affine_fx
 
+    def at_offset(base, columns, offset):  # base + sum_d o_d columns[d], skipping the zeros
+        for d, od in enumerate(offset):
+            if od:
+                base = base + od * columns[d]
+        return base
+
     # Computed once: XLA's CPU fusion would otherwise recompute them (and in forward mode their
     # tangents, back through the material's stress) inside each of the 3^D row fusions.
-    columns, base_momentum = compute_once(momentum_terms, state, tau, st.fx, token=always_true(st.base))
+    columns, base_momentum = compute_once(
+        lambda state, tau, fx: terms(state, affine_momentum(grid, state, tau, dt), fx),
+        state, tau, st.fx, token=always_true(st.base))
     if unforced:  # the momentum without the stress, m_p (v_p + C_p (x_i - x_p)), the same way
-
-        def free_terms(state, fx):
-            mC = scale_rows(state.mass, state.C)
-            mC_fx = sum(scale_rows(fx[d], mC[:, :, d]) for d in range(dim))
-            return [grid.dx * mC[:, :, d] for d in range(dim)], scale_rows(state.mass, state.v) - grid.dx * mC_fx
-
-        free_columns, free_base = compute_once(free_terms, state, st.fx, token=always_true(st.base))
+        free_columns, free_base = compute_once(
+            lambda state, fx: terms(state, scale_rows(state.mass, state.C), fx), state, st.fx,
+            token=always_true(st.base))
     incompatible = None if contact is None else contact.incompatible_mask()
     # Stored once, and in forward mode their k tangents per offset: each row fusion would
     # otherwise re-derive its weight's tangent from the positions' for every entry it writes.
     weights = compute_once(stencil_weights, st, incompatible, token=always_true(st.base))
     rows = []
     for weight, offset in zip(weights, stencil_offsets(dim)):
-        momentum = base_momentum
-        for d, od in enumerate(offset):
-            if od:
-                momentum = momentum + od * columns[d]
-        cols = [state.mass[:, None], momentum]
+        cols = [state.mass[:, None], at_offset(base_momentum, columns, offset)]
         if unforced:
-            cols.append(free_base + sum(od * free_columns[d] for d, od in enumerate(offset) if od))
+            cols.append(at_offset(free_base, free_columns, offset))
         rows.append(scale_rows(weight, jnp.concatenate(cols, axis=-1)))
     packed = scatter_stencil(grid, st, rows)
     if unforced:
@@ -241,6 +241,14 @@ def node_tolerance(grid: Grid, dtype, reach: float = 0.0) -> float:
     return max(1e-6 * grid.dx, 32.0 * float(jnp.finfo(dtype).eps) * extent)
 
 
+def node_inverse_mass(grid: Grid, mass: Float[Array, " G"]) -> tuple[Bool[Array, " G"], Float[Array, " G"]]:
+    """Which nodes hold mass (above ``MASS_EPS`` per unit cell volume), and ``1 / mass`` there
+    (0 on empty nodes). One reciprocal per node: 3x cheaper forward and backward than dividing
+    each component under a mask (measured)."""
+    occupied = mass > MASS_EPS * grid.dx**grid.dim
+    return occupied, jnp.where(occupied, 1.0 / jnp.where(occupied, mass, 1.0), 0.0)
+
+
 def grid_update(
     model: Model,
     params: Params,
@@ -262,10 +270,7 @@ def grid_update(
     else:
         total = mass + rigid[0]
         momentum = momentum + rigid[1]
-    occupied = total > MASS_EPS * grid.dx**grid.dim
-    # one reciprocal per node, zero on empty nodes (3x cheaper forward and backward than
-    # dividing each component under a mask, measured)
-    inverse_mass = jnp.where(occupied, 1.0 / jnp.where(occupied, total, 1.0), 0.0)
+    occupied, inverse_mass = node_inverse_mass(grid, total)
     v = scale_rows(inverse_mass, momentum)
     if rigid is not None:
         material_share = (mass * inverse_mass)[:, None]
@@ -399,8 +404,7 @@ def g2p(
 def unforced_velocity(grid: Grid, mass: Float[Array, " G"], free_momentum: Float[Array, "G D"]) -> Float[Array, "G D"]:
     """``v*_i``: the node velocities of the APIC momentum alone, before any force, ``(G, D)``
     m/s (zero on empty nodes)."""
-    occupied = mass > MASS_EPS * grid.dx**grid.dim
-    return scale_rows(jnp.where(occupied, 1.0 / jnp.where(occupied, mass, 1.0), 0.0), free_momentum)
+    return scale_rows(node_inverse_mass(grid, mass)[1], free_momentum)
 
 
 def flip_correction(
