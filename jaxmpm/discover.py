@@ -1256,8 +1256,10 @@ def discover(
             "no extension removes a significant part of the held-out error" if all_cands else "no extension applies")
         verdict = f"No significant discrepancy: {why}."
         if convergence and conv.get("numerical_fraction", 0.0) > 0.5:
-            verdict += (f" The residual is mostly numerical: refining dt changes the prediction by "
-                        f"{conv['numerical_fraction']:.0%} of the error.")
+            verdict += (f" The prediction is not converged in dt: refining dt moves it by "
+                        f"{conv['numerical_fraction']:.0%} of the error (held-out error {conv['heldout_error_dt']:.3g} "
+                        f"at dt, {conv['heldout_error_dt2']:.3g} at dt/2), so a smaller physical effect cannot be told "
+                        "from the discretisation.")
     # first-step candidates first (the ranked table of the contract), later steps after
     order = sorted(all_cands, key=lambda c: (c.step, -c.score))
     settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),

@@ -673,7 +673,9 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
               f"({c['numerical_fraction']:.0%} of the base model's held-out error {c['heldout_error_dt']:.3g}; "
               f"held-out error at dt/2: {c['heldout_error_dt2']:.3g}). "
               + ("Most of the residual is therefore **not** numerical." if c["numerical_fraction"] < 0.5 else
-                 "A large part of the residual is numerical: refine dt/dx before trusting a physical explanation."), ""]
+                 "The prediction is not converged in dt: it moves by as much as half the residual, so no physical "
+                 "explanation smaller than that can be told from the discretisation. Refine dt/dx before trusting one."),
+              ""]
     else:
         L += ["Not run.", ""]
     L += ["## Candidates", "",

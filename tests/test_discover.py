@@ -215,6 +215,10 @@ def test_no_refit_is_run_when_no_improvement_could_exceed_the_numerical_error():
     result = discover(m, p, obs, top=2, max_extensions=1)
     assert not result.discrepancy
     assert result.base_error < result.convergence["numerical_error"]
+    # the verdict says the prediction is not converged in dt, with both errors, and does not
+    # claim to know how much of the residual a converged run would remove
+    assert "not converged in dt" in result.verdict, result.verdict
+    assert f"{result.convergence['heldout_error_dt2']:.3g} at dt/2" in result.verdict
     assert not any(c.refit for c in result.candidates)
     assert result.candidates[0].id == "gravity" and result.candidates[0].score > 0.9
     screened = [c for c in result.candidates if c.score > 1e-9 and "rank" not in c.reason]
