@@ -10,10 +10,11 @@ corrected H1/H3 labels, SOURCE.md).
 jaxmpm's axes: x along the tank, y up (gravity -y), z across. The experiment is symmetric about
 the tank's centre plane z = 0.5 (box and gauges), so only the half z in [0, 0.5] is simulated,
 with slip walls (the centre plane is a symmetry plane). The resolution is what 2 CPU cores run
-in reasonable time (``--dx``, default 0.1 m: about 2 600 particles, 1 100 steps for 1.0 s; the
-run below takes about 85 s on 2 idle CPU cores). ``--resolution-check`` re-simulates its base and
-extended models at dx/2; ``--dx 0.05 --substeps 88`` runs the whole study there (42 minutes:
-docs/case_studies/dam_break_3d_obstacle.md, "At twice the resolution"); ``--dt-series 88,176,352``
+in reasonable time (``--dx``, default 0.1 m: about 2 600 particles, 1 100 steps for 1.0 s; a
+study takes about 2 minutes on 2 idle CPU cores). ``--resolution-check`` re-simulates its base and
+extended models at dx/2; ``--dx 0.05 --substeps 88`` runs the whole study there (9 minutes; 53
+with ``--flip 0.99``, 42 with ``--reading top``: docs/case_studies/dam_break_3d_obstacle.md,
+"The gauge reading" and "At twice the resolution"); ``--dt-series 88,176,352``
 re-simulates a report's models at those substep counts (is the error converged in dt?), with
 ``--flip 0.99`` under a FLIP blend (docs/materials.md, "Transfers").
 
@@ -21,9 +22,14 @@ The base model has no free parameter by default: the water keeps its own viscosi
 mu`` fits it, which can let an unphysically large viscosity absorb the discrepancy, as it does in 2D; the
 ``rate_dependence`` extension still tests that explanation as a named cause).
 
+Simulated gauges read the depth the water around them would fill (``--reading depth``, the
+default); ``--reading top`` reads the highest particle within a cell of a gauge, as the study
+was first made (spray then counts as water).
+
 Run::
 
-    python examples/dam_break_3d_obstacle.py --out docs/case_studies/dam_break_3d_obstacle
+    python examples/dam_break_3d_obstacle.py                      # depth reading, APIC: dam_break_3d_obstacle_out/
+    python examples/dam_break_3d_obstacle.py --reading top --out docs/case_studies/dam_break_3d_obstacle  # the first study
 """
 
 from __future__ import annotations
@@ -87,6 +93,23 @@ def scene_spec(dx: float = 0.08, t_end: float = 1.2, ppc: int = 8, mu: float = 2
 #: How a simulated gauge reads the water: ``top``, the highest particle within one cell of it
 #: (spray counts); ``depth``, the depth the water around it would fill (``depth_gauge``).
 READINGS = ("top", "depth")
+
+
+def report_settings(out, reading: str | None = None, flip: float | None = None, existing: bool = False) -> tuple[str, float]:
+    """The gauge reading and FLIP blend a run uses: those given, else, for a mode that reuses
+    the report in ``out`` (``existing``: ``--summary-only``, ``--resolution-check``,
+    ``--dt-series``), the ones that report was made with (its ``summary.json``; a summary
+    without them predates the options: ``"top"``, APIC), else the defaults of a new study:
+    ``"depth"`` (a wave gauge measures the surface at its position, not the highest drop
+    above it; docs/case_studies/dam_break_3d_obstacle.md) and APIC (``0.0``)."""
+    made = {}
+    if existing and (Path(out) / "summary.json").exists():
+        made = json.loads((Path(out) / "summary.json").read_text())
+    if reading is None:
+        reading = (made.get("reading") or "top") if existing else "depth"
+    if flip is None:
+        flip = float(made.get("flip") or 0.0)
+    return reading, flip
 
 
 def gauge_probes(dx: float, reading: str = "top"):
@@ -284,7 +307,9 @@ class _State:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default="docs/case_studies/dam_break_3d_obstacle")
+    ap.add_argument("--out", default="dam_break_3d_obstacle_out",
+                    help="the study's folder (report, plots, summaries; default: dam_break_3d_obstacle_out); the "
+                         "committed studies are in docs/case_studies/dam_break_3d_obstacle/")
     ap.add_argument("--dx", type=float, default=0.1)
     ap.add_argument("--t-end", type=float, default=1.0, help="last measured time used (s)")
     ap.add_argument("--extensions", default="time_offset,collider_friction,drag,damping,rate_dependence",
@@ -307,13 +332,16 @@ def main(argv=None) -> int:
     ap.add_argument("--extended", default="",
                     help="with --dt-series or --summary-only: the extended model to use instead of the report's, as "
                          "ext.key=value pairs (comma-separated), e.g. collider_friction.floor=0.079,collider_friction.box=0")
-    ap.add_argument("--flip", type=float, default=0.0,
-                    help="a FLIP blend in [0, 1) (default 0, APIC; docs/materials.md, 'Transfers'); with --dt-series "
-                         "the files' names end in _flip<value>")
-    ap.add_argument("--reading", choices=READINGS, default="top",
-                    help="how a simulated gauge reads the water: 'top', the highest particle within a cell of it "
-                         "(default; spray counts), or 'depth', the depth the water around it would fill "
-                         "(jaxmpm.identify.depth_gauge); with --dt-series the files' names end in _depth")
+    ap.add_argument("--flip", type=float, default=None,
+                    help="a FLIP blend in [0, 1) (default: 0, APIC, or, with --summary-only, --resolution-check or "
+                         "--dt-series, the blend the report in --out was made with; docs/materials.md, 'Transfers'); "
+                         "with --dt-series the files' names end in _flip<value>")
+    ap.add_argument("--reading", choices=READINGS, default=None,
+                    help="how a simulated gauge reads the water: 'depth', the depth the water around it would fill "
+                         "(jaxmpm.identify.depth_gauge; the default for a new study), or 'top', the highest particle "
+                         "within a cell of it (spray counts; the study as first made). With --summary-only, "
+                         "--resolution-check or --dt-series the default is the reading of the report in --out. With "
+                         "--dt-series the files' names end in _depth")
     args = ap.parse_args(argv)
     try:
         extended = {k: float(v) for k, v in (kv.split("=") for kv in args.extended.split(",") if kv)} or None
@@ -322,8 +350,10 @@ def main(argv=None) -> int:
         ap.error(f"--extended takes ext.key=value pairs and --dt-series integers ({e})")
     if any(n < 1 for n in counts):
         ap.error("--dt-series takes positive substep counts")
-    if not 0.0 <= args.flip < 1.0:
+    if args.flip is not None and not 0.0 <= args.flip < 1.0:
         ap.error(f"--flip takes a value in [0, 1), got {args.flip}")
+    existing = bool(counts) or args.summary_only or args.resolution_check
+    args.reading, args.flip = report_settings(args.out, args.reading, args.flip, existing)
     if counts:
         print(json.dumps(dt_series(args.out, args.dx, args.t_end, counts, extended, args.flip, args.reading), indent=1))
         return 0

@@ -106,6 +106,22 @@ def test_dam_break_3d_obstacle_summary_replots_base_and_extended_gauges(tmp_path
         assert res["rms_all_heldout_window_m"][kind] == pytest.approx(np.sqrt(np.mean(per_gauge)), rel=1e-6)
 
 
+def test_dam_break_3d_obstacle_reruns_a_report_with_the_reading_and_blend_it_was_made_with(tmp_path):
+    """A new study reads gauges as depth with APIC; ``--summary-only``, ``--resolution-check``
+    and ``--dt-series`` reuse a report, so they take its reading and blend from its
+    ``summary.json`` (a summary without them predates the options: the highest particle, APIC),
+    and what is given on the command line wins."""
+    settings = _script("dam_break_3d_obstacle").report_settings
+    assert settings(tmp_path) == ("depth", 0.0)  # a new study
+    assert settings(tmp_path, existing=True) == ("top", 0.0)  # no summary.json yet
+    (tmp_path / "summary.json").write_text(json.dumps({"dx": 0.1}))  # made before the options
+    assert settings(tmp_path, existing=True) == ("top", 0.0)
+    (tmp_path / "summary.json").write_text(json.dumps({"reading": "depth", "flip": 0.99}))
+    assert settings(tmp_path, existing=True) == ("depth", 0.99)
+    assert settings(tmp_path, reading="top", flip=0.0, existing=True) == ("top", 0.0)
+    assert settings(tmp_path) == ("depth", 0.0)  # a new study ignores an old summary
+
+
 def test_dam_break_3d_obstacle_dt_series_reruns_the_models_at_each_dt(tmp_path):
     """``--dt-series``: the base model and a given extended model (here not the report's, which
     selected nothing) at several substep counts, and the held-out error of each against dt."""
