@@ -112,7 +112,7 @@ def report_settings(out, reading: str | None = None, flip: float | None = None, 
     return reading, flip
 
 
-def gauge_probes(dx: float, reading: str = "top"):
+def gauge_probes(dx: float, reading: str = "depth"):
     """Gauge heights on the centre line (the symmetry plane z = 0.5), read as ``reading``
     (:data:`READINGS`)."""
     from jaxmpm.identify import depth_gauge, gauge
@@ -131,7 +131,7 @@ def observation(spec: dict, t_end: float):
                        scene=json.dumps(spec))
 
 
-def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0, reading: str = "top"):
+def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0, reading: str = "depth"):
     """The experiment as a ``discover`` sequence; ``substeps`` per frame overrides the scene's
     rule; ``flip`` is the scene's FLIP blend (0: APIC, docs/materials.md, "Transfers");
     ``reading`` how its gauges read the water (:data:`READINGS`)."""
@@ -147,7 +147,7 @@ def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float =
 
 
 def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", substeps: int | None = None,
-            extended: dict[str, float] | None = None, flip: float = 0.0, reading: str = "top") -> dict:
+            extended: dict[str, float] | None = None, flip: float = 0.0, reading: str = "depth") -> dict:
     """Per-gauge RMS errors and arrival times (first time the height exceeds ``wet`` metres,
     measured and simulated alike; a particle layer is about dx/4 thick) of the base and the
     extended model from ``report.json``, simulated at ``dx`` (``summary{tag}.json``,
@@ -252,7 +252,7 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
 
 
 def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: dict[str, float] | None = None,
-              flip: float = 0.0, reading: str = "top") -> dict:
+              flip: float = 0.0, reading: str = "depth") -> dict:
     """Is the held-out error converged in dt? :func:`summary` at each substep count (its files
     tagged ``_substeps{n}``), and ``dt_series.json`` / ``dt_series.png``: the held-out RMS
     error over all four gauges of the base and the extended model against dt. With a FLIP

@@ -124,19 +124,21 @@ def test_dam_break_3d_obstacle_reruns_a_report_with_the_reading_and_blend_it_was
 
 def test_dam_break_3d_obstacle_dt_series_reruns_the_models_at_each_dt(tmp_path):
     """``--dt-series``: the base model and a given extended model (here not the report's, which
-    selected nothing) at several substep counts, and the held-out error of each against dt."""
+    selected nothing) at several substep counts, and the held-out error of each against dt.
+    Read as depth (the default), every file name ends in ``_depth``."""
     module = _script("dam_break_3d_obstacle")
     (tmp_path / "report.json").write_text(json.dumps({"details": {"causes": []}}))
     n = module.sequence(dx=0.2, t_end=0.1).model.substeps
     extended = {"collider_friction.floor": 0.5, "collider_friction.box": 0.0}
     res = module.dt_series(tmp_path, dx=0.2, t_end=0.1, substeps=[n, 2 * n], extended=extended)
-    assert json.loads((tmp_path / "dt_series.json").read_text()) == res
-    assert (tmp_path / "dt_series.png").stat().st_size > 0
+    assert res["reading"] == "depth"
+    assert json.loads((tmp_path / "dt_series_depth.json").read_text()) == res
+    assert (tmp_path / "dt_series_depth.png").stat().st_size > 0
     assert [r["substeps"] for r in res["rows"]] == [{"base": n, "extended": n}, {"base": 2 * n, "extended": 2 * n}]
     for r in res["rows"]:
         assert r["causes"] == ["collider_friction"]
         assert np.isfinite(list(r["rms_all_heldout_window_m"].values())).all()
-        tagged = json.loads((tmp_path / f"summary_substeps{r['substeps_asked']}.json").read_text())
+        tagged = json.loads((tmp_path / f"summary_substeps{r['substeps_asked']}_depth.json").read_text())
         assert tagged["rms_all_heldout_window_m"] == r["rms_all_heldout_window_m"]
     # the floor friction changes the prediction, and dt/2 changes it a little
     first, second = (r["rms_all_heldout_window_m"] for r in res["rows"])
