@@ -322,6 +322,15 @@ def load_scene(source: str | Path | dict, base_dir: str | Path | None = None, dt
     return scene
 
 
+def flip_share(value, where: str) -> float:
+    """The scene key ``flip`` (``Model.flip``, the FLIP share of the velocity update) checked:
+    a number in [0, 1); raises SceneError naming ``where`` otherwise."""
+    flip = float(_number(value, f"{where}: 'flip'"))
+    if not 0.0 <= flip < 1.0:
+        raise SceneError(f"{where}: 'flip' must be in [0, 1) (the FLIP share of the velocity update), got {flip}")
+    return flip
+
+
 def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     _check_keys(spec, _TOP_REQUIRED, _TOP_OPTIONAL, "scene")
     dim = spec["dim"]
@@ -341,9 +350,7 @@ def _build(spec: dict, base_dir: Path, dtype) -> Scene:
     substeps = _substeps(spec, frame_dt)
     gravity = vector(spec.get("gravity", [0.0, -9.8, 0.0][:dim]), dim, "scene: 'gravity'")
     collision = Collision(_choice(spec.get("collision", Collision.CPIC.value), COLLISION_MODES, "scene: 'collision'"))
-    flip = float(_number(spec.get("flip", 0.0), "scene: 'flip'"))
-    if not 0.0 <= flip < 1.0:
-        raise SceneError(f"scene: 'flip' must be in [0, 1) (the FLIP share of the velocity update), got {flip}")
+    flip = flip_share(spec.get("flip", 0.0), "scene")
     grid = Grid(lo=tuple(lo.tolist()), hi=tuple(hi.tolist()), dx=float(dx))
     if grid.num_nodes >= MAX_INT32:  # flat node indices are int32
         raise SceneError(f"scene: 'dx' = {dx} is too small for the domain: the grid would have {grid.num_nodes:.3g} nodes")

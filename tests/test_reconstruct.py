@@ -300,6 +300,17 @@ def test_unknown_hint_key_is_an_error(dataset, tmp_path):
         read_dataset(dataset[0], hint)
 
 
+def test_a_hint_sets_the_flip_blend_and_a_bad_one_is_an_error_before_any_work(dataset, tmp_path):
+    """A hint may ask for the FLIP blend (``flip``, docs/materials.md: a fluid's viscosity
+    from data APIC did not make); the skeleton carries it, a missing one is APIC (0), and a
+    value outside [0, 1) is refused when the hint is read."""
+    assert "flip" not in scene_skeleton(read_dataset(dataset[0], {}), "newtonian")
+    assert scene_skeleton(read_dataset(dataset[0], {"flip": 0.99}), "newtonian")["flip"] == 0.99
+    for bad in (1.0, -0.1, "lots"):
+        with pytest.raises(ObservationError, match="'flip' must be"):
+            read_dataset(dataset[0], {"flip": bad})
+
+
 def test_a_curved_collider_is_carved_finer_than_the_simulation_grid():
     """The collider hull is carved at dx / 10 inside the box a dx / 2 hull finds: the 0.2 m
     bunny (4 cells long) seen by the demo's rig comes out within 4 mm of the true surface on

@@ -17,7 +17,7 @@ from ..errors import ObservationError, SceneError
 from ..observe import Observation
 
 #: Scene keys a ``scene_hint.toml`` may give (DESIGN §5.1); anything else is an error.
-HINT_KEYS = ("dim", "dx", "domain", "gravity", "frame_dt", "substeps", "dt", "collision", "colliders", "bodies")
+HINT_KEYS = ("dim", "dx", "domain", "gravity", "frame_dt", "substeps", "dt", "collision", "flip", "colliders", "bodies")
 #: Keys of the hint's ``[[bodies]]`` table (only the first body is used).
 HINT_BODY_KEYS = ("material", "ppc", "name")
 #: How far (in frames) the spacing of the ``time`` values may be from whole multiples of ``frame_dt``.
@@ -53,7 +53,7 @@ class Dataset:
 
 def read_hint(source: str | os.PathLike | dict | None) -> dict:
     """A scene hint from a ``.toml``/``.json`` file or a dict, keys checked (empty when None)."""
-    from ..scene import read_spec
+    from ..scene import flip_share, read_spec
 
     if source is None:
         return {}
@@ -71,6 +71,11 @@ def read_hint(source: str | os.PathLike | dict | None) -> dict:
         raise ObservationError(f"{where}: unknown key {unknown[0]!r} (a hint may give {', '.join(HINT_KEYS)})")
     if hint.get("dim", 3) != 3:
         raise ObservationError(f"{where}: identify reconstructs 3D scenes; 'dim' must be 3, got {hint['dim']!r}")
+    if "flip" in hint:
+        try:
+            flip_share(hint["flip"], where)
+        except SceneError as err:
+            raise ObservationError(str(err)) from None
     bodies = hint.get("bodies", [])
     if not isinstance(bodies, list) or len(bodies) > 1:
         raise ObservationError(f"{where}: 'bodies' must be a list with at most one [[bodies]] table")

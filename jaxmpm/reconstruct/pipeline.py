@@ -114,7 +114,7 @@ def scene_skeleton(dataset: Dataset, material: str) -> dict:
     camera sees whole (extended down to a hint floor); ``dx`` = its longest side /
     :data:`DEFAULT_CELLS`; ``gravity`` (0, −9.8, 0); ``frame_dt`` from the ``time`` values;
     ``frames`` to cover the last observed time; ``substeps`` so that dt = dx / 50 m/s;
-    ``collision = "cpic"``; the material's starting guess PAC-NeRF's (each parameter's declared ``guess``),
+    ``collision = "cpic"``; ``flip`` 0 (APIC); the material's starting guess PAC-NeRF's (each parameter's declared ``guess``),
     density 1000 kg/m³, ``ppc`` 8.
     """
     from ..constitutive import MATERIALS
@@ -147,6 +147,8 @@ def scene_skeleton(dataset: Dataset, material: str) -> dict:
     else:
         spec["substeps"] = max(1, math.ceil(dataset.frame_dt * SUBSTEP_SPEED / dx))
     spec["collision"] = hint.get("collision", "cpic")
+    if "flip" in hint:
+        spec["flip"] = float(hint["flip"])
     spec["colliders"] = [dict(c, name=c.get("name", f"plane{k}")) for k, c in enumerate(hint.get("colliders", []))]
     return spec
 
