@@ -1,18 +1,21 @@
 """Does the transfer bias the viscosity a fit identifies? APIC against the FLIP blend in fits.
 
-    python benchmarks/flip_fit.py [--mu 0.5,5,50] [--cells 10,20] [--ref-cells 40] [--out DIR]
+    python benchmarks/flip_fit.py [--material newtonian] [--mu 0.5,5,50] [--cells 10,20] [--ref-cells 40] [--out DIR]
+    python benchmarks/flip_fit.py --material viscoplastic [--yield-stress 500] [--eta 0.5,5] ...
 
-A 2D column of a Newtonian fluid (0.1 m wide, 0.2 m high, PAC-NeRF's model with a weakly
-compressible bulk modulus, sqrt(kappa / rho) = 22 m/s) collapses on a free-slip floor for
-0.3 s. The data are four depth gauges (``jaxmpm.identify.depth_gauge`` at x = 0.05, 0.15,
+A 2D column (0.1 m wide, 0.2 m high) collapses on a free-slip floor for 0.3 s: PAC-NeRF's
+Newtonian fluid (a weakly compressible bulk modulus, sqrt(kappa / rho) = 22 m/s; ``mu`` fitted)
+or its viscoplastic material (shear modulus 2 kPa, kappa 100 kPa; ``yield_stress`` and ``eta``
+fitted). The data are four depth gauges (``jaxmpm.identify.depth_gauge`` at x = 0.05, 0.15,
 0.25 and 0.35 m, each 2 cm wide) read every frame (10 ms) from a *reference* run on a fine
 grid (``--ref-cells`` cells across the column, the FLIP blend 0.99, and APIC as a check of the
-reference itself). At the coarse grids (``--cells``) the script fits the viscosity ``mu``
-alone (Levenberg-Marquardt, one stage over all frames, started at three times the truth)
-once with APIC (``flip = 0``) and once with ``flip = 0.99``, and reports the identified
-``mu`` against the truth. APIC's transfers take kinetic energy out at every step
-(docs/materials.md, "Transfers"), a numerical viscosity a fit can only absorb into ``mu``;
-the blend keeps most of it. This measures how much that moves an identified viscosity.
+reference itself). At the coarse grids (``--cells``) the script fits the fitted parameters
+(Levenberg-Marquardt, one stage over all frames, each started at three times its truth) once
+with APIC (``flip = 0``) and once with ``flip = 0.99``, and reports them against the truth.
+APIC's transfers take kinetic energy out at every step (docs/materials.md, "Transfers"), a
+numerical viscosity a fit can only absorb into the material's parameters; the blend keeps
+most of it. This measures how much that moves what a fit identifies. The true values are
+every combination of the fitted parameters' lists (``--mu``, ``--yield-stress``, ``--eta``).
 
 Each row goes to ``OUT/rows.jsonl`` as soon as it is measured (a rerun skips the rows it
 already has), the reference readings to ``OUT/reference_*.npz``; results in docs/materials.md
@@ -37,16 +40,25 @@ LENGTH = 0.6
 FRAMES, FRAME_DT = 30, 0.01
 GAUGES = (0.05, 0.15, 0.25, 0.35)
 GAUGE_WIDTH = 0.02
-KAPPA = 1000.0 * 22.4**2
+#: material -> (its fixed parameters, the fitted ones); the Newtonian bulk modulus gives
+#: sqrt(kappa / rho) = 22.4 m/s, 8 times the column's Ritter front speed
+MATERIALS = {
+    "newtonian": ({"kappa": 1000.0 * 22.4**2}, ("mu",)),
+    "viscoplastic": ({"mu": 2e3, "kappa": 1e5}, ("yield_stress", "eta")),
+}
+#: the true values tried by default
+DEFAULT_TRUTHS = {"mu": "0.5,5,50", "yield_stress": "500", "eta": "0.5,5"}
 
 
-def spec(cells: int, mu: float, flip: float) -> dict:
-    """The column at ``cells`` cells across its width (2 x 2 particles a cell)."""
+def spec(cells: int, material: str, values: dict, flip: float) -> dict:
+    """The column at ``cells`` cells across its width (2 x 2 particles a cell) with the
+    material's fixed parameters and ``values``."""
+    fixed, _ = MATERIALS[material]
     return {
         "dim": 2, "dx": WIDTH / cells, "domain": {"lo": [0.0, 0.0], "hi": [LENGTH, 1.5 * HEIGHT]},
         "gravity": [0.0, -G], "frames": FRAMES, "frame_dt": FRAME_DT, "substeps": 1, "flip": flip,
         "bodies": [{"name": "fluid", "shape": "box", "lo": [0.0, 0.0], "hi": [WIDTH, HEIGHT], "ppc": 4,
-                    "material": {"model": "newtonian", "mu": mu, "kappa": KAPPA, "density": 1000.0}}],
+                    "material": {"model": material, **fixed, **values, "density": 1000.0}}],
         "colliders": [{"type": "plane", "name": "floor", "point": [0.0, 0.0], "normal": [0.0, 1.0], "contact": "slip"}],
     }
 
@@ -66,20 +78,20 @@ class _State:
         self.x, self.vol0 = x, vol0
 
 
-def load(cells: int, mu: float, flip: float):
+def load(cells: int, material: str, values: dict, flip: float):
     """The scene at a stable substep count (stress-wave CFL number 0.5)."""
     from jaxmpm import load_scene, stable_substeps
 
-    scene = load_scene(spec(cells, mu, flip))
+    scene = load_scene(spec(cells, material, values, flip))
     n = stable_substeps(scene.model, scene.params, limit=0.5)
     return scene.model.with_substeps(n), scene.params
 
 
-def readings(cells: int, mu: float, flip: float) -> tuple[np.ndarray, np.ndarray, int]:
+def readings(cells: int, material: str, truth: dict, flip: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Gauge readings ``(G, frames)`` in m of a healthy run, the times, and the substeps it ran."""
     from jaxmpm import simulate_healthy
 
-    model, params = load(cells, mu, flip)
+    model, params = load(cells, material, truth, flip)
     traj, ran, discarded = simulate_healthy(model, params)
     for why in discarded:
         print(why, file=sys.stderr)
@@ -100,25 +112,39 @@ def observation(t: np.ndarray, h: np.ndarray):
                        probe_values=h[:, keep])
 
 
-def fit_mu(cells: int, mu_true: float, flip: float, obs) -> dict:
-    """Fit ``mu`` alone at ``cells`` from three times ``mu_true``; the row (``log10_error``:
-    log10 of the fitted over the true ``mu``, None where the fit drove it to 0)."""
+def fit_material(cells: int, material: str, truth: dict, flip: float, obs) -> dict:
+    """Fit the material's fitted parameters at ``cells``, each from three times its value in
+    ``truth``; the row: fitted ``values``, ``log10_error`` (log10 of fitted over true; None
+    where the fit drove a value to 0), ``std`` and the fit's figures."""
     from jaxmpm import FitConfig, fit
 
-    model, params = load(cells, mu_true * 3.0, flip)  # start at three times the truth
+    names = list(truth)
+    model, params = load(cells, material, {k: 3.0 * v for k, v in truth.items()}, flip)
     config = FitConfig(stages=None, probes=probes(), scan=())
     t0 = time.perf_counter()
-    res = fit(model, params, obs, ["mu"], config)
-    mu = float(res.values["mu"])
-    return {"mu": mu, "log10_error": math.log10(mu / mu_true) if mu > 0 else None,  # None: fitted to 0
-            "std": float(res.std["mu"]), "loss": float(res.loss[-1]),
+    res = fit(model, params, obs, names, config)
+    values = {k: float(res.values[k]) for k in names}
+    return {"values": values, "log10_error": {k: math.log10(v / truth[k]) if v > 0 else None for k, v in values.items()},
+            "std": {k: float(res.std[k]) for k in names}, "loss": float(res.loss[-1]),
             "iterations": res.iterations, "converged": res.converged, "substeps": res.substeps,
-            "seconds": time.perf_counter() - t0, "message": res.message}
+            "seconds": time.perf_counter() - t0, "message": res.message, "notes": res.notes}
+
+
+def truths(material: str, lists: dict) -> list[dict]:
+    """Every combination of the fitted parameters' true values (``lists``: name -> "a,b,...")."""
+    _, names = MATERIALS[material]
+    combos = [{}]
+    for name in names:
+        combos = [{**c, name: float(v)} for c in combos for v in lists[name].split(",")]
+    return combos
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--mu", default="0.5,5,50", help="true viscosities, Pa s")
+    ap.add_argument("--material", choices=sorted(MATERIALS), default="newtonian")
+    for name, default in DEFAULT_TRUTHS.items():
+        ap.add_argument(f"--{name.replace('_', '-')}", dest=name, default=default,
+                        help=f"true values of {name} when it is fitted (default {default})")
     ap.add_argument("--cells", default="10,20", help="coarse grids: cells across the column's width")
     ap.add_argument("--ref-cells", type=int, default=40)
     ap.add_argument("--out", default="flip_fit_out")
@@ -134,29 +160,30 @@ def main(argv=None) -> int:
         with rows_path.open("a") as f:
             f.write(json.dumps(row) + "\n")
 
-    for mu in [float(v) for v in a.mu.split(",")]:
+    for truth in truths(a.material, vars(a)):
+        case = {"material": a.material, **truth}
+        tag = "_".join([a.material] + [f"{k}{v:g}" for k, v in truth.items()])
         ref = {}
         for flip in (0.99, 0.0):
-            path = out / f"reference_mu{mu:g}_cells{a.ref_cells}_flip{flip:g}.npz"
+            path = out / f"reference_{tag}_cells{a.ref_cells}_flip{flip:g}.npz"
             if path.exists():
                 z = np.load(path)
                 h, t = z["h"], z["t"]
             else:
                 t0 = time.perf_counter()
-                h, t, substeps = readings(a.ref_cells, mu, flip)
+                h, t, substeps = readings(a.ref_cells, a.material, truth, flip)
                 np.savez(path, h=h, t=t, substeps=substeps, seconds=time.perf_counter() - t0)
             ref[flip] = (h, t)
         gap = float(np.sqrt(np.mean((ref[0.99][0] - ref[0.0][0]) ** 2)))
-        key = {"mu": mu, "reference": "transfers", "cells": a.ref_cells}
+        key = {**case, "reference": "transfers", "cells": a.ref_cells}
         if json.dumps(key) not in done:
             record(key, {"rms_apic_vs_flip_m": gap, "depth_rms_m": float(np.sqrt(np.mean(ref[0.99][0] ** 2)))})
         obs = observation(ref[0.99][1], ref[0.99][0])
         for cells in [int(c) for c in a.cells.split(",")]:
             for flip in (0.0, 0.99):
-                key = {"mu": mu, "cells": cells, "flip": flip}
-                if json.dumps(key) in done:
-                    continue
-                record(key, fit_mu(cells, mu, flip, obs))
+                key = {**case, "cells": cells, "flip": flip}
+                if json.dumps(key) not in done:
+                    record(key, fit_material(cells, a.material, truth, flip, obs))
     return 0
 
 

@@ -46,6 +46,7 @@ densities; a tanh-bounded Poisson ratio; degrees for the friction angle; linear 
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
@@ -549,6 +550,7 @@ def fit(
 
     notes: list[str] = [f"{n}: {CPIC_RESTITUTION_NOTE}" for n, p in paths.items()
                         if p[0] == "colliders" and p[2] == "restitution" and weak_restitution(model, p[1])]
+    notes += [f"{n}: {APIC_VISCOSITY_NOTE}" for n in apic_viscosities(model, paths, observation)]
     planning_s = 0.0
     if c.stages == "auto":
         t_plan = time.perf_counter()
@@ -827,6 +829,31 @@ def fit(
     if not converged and any(r.get("scan", {}).get("moved") for r in records):
         result = _also_from_the_guess(result, scene_model, params, observation, names, c, progress=progress, log=log)
     return result
+
+
+#: The note of a viscosity fitted with APIC's transfers to data they did not make (docs/materials.md,
+#: "In fits"; ``benchmarks/flip_fit.py``).
+APIC_VISCOSITY_NOTE = (
+    "a viscosity fitted with APIC transfers (flip = 0) to data this grid's APIC did not make: the transfers' "
+    "numerical dissipation is fitted as viscosity, so it tends to come out low (a 2D collapsing column at 10 cells "
+    "across: 0.19 decades low at 5 Pa s, 0 found at 0.5 Pa s); the scene key flip = 0.99 cut that bias about 5x "
+    "(docs/materials.md, 'In fits')"
+)
+
+
+def apic_viscosities(model: Model, paths: dict, observation: Observation) -> list[str]:
+    """The fitted names (``paths``: name -> parameter path) that are a body's viscosity (a
+    material parameter in Pa s) fitted with APIC transfers (``model.flip == 0``) to data that
+    this model on this grid need not have made: neither tracks of its own particles nor an
+    embedded scene with the same ``dx`` and no FLIP blend (:data:`APIC_VISCOSITY_NOTE`)."""
+    if model.flip != 0.0 or observation.tracks_particles:
+        return []
+    made = observation.scene_spec
+    if made is not None and float(made.get("flip", 0.0)) == 0.0 and math.isclose(float(made["dx"]), model.grid.dx,
+                                                                                rel_tol=1e-6):
+        return []
+    return [n for n, p in paths.items()
+            if p[0] == "bodies" and getattr(model.bodies[p[1]].material.parameter(p[2]), "unit", None) == "Pa s"]
 
 
 def outside_their_range(values: dict) -> list[str]:
