@@ -834,10 +834,10 @@ def fit(
 #: The note of a viscosity fitted with APIC's transfers to data they did not make (docs/materials.md,
 #: "In fits"; ``benchmarks/flip_fit.py``).
 APIC_VISCOSITY_NOTE = (
-    "a viscosity fitted with APIC transfers (flip = 0) to data this grid's APIC did not make: the transfers' "
-    "numerical dissipation is fitted as viscosity, so it tends to come out low (a 2D collapsing column at 10 cells "
-    "across: 0.19 decades low at 5 Pa s, 0 found at 0.5 Pa s); the scene key flip = 0.99 cut that bias about 5x "
-    "(docs/materials.md, 'In fits')"
+    "a viscosity fitted with APIC transfers (flip = 0): if these data were not made by APIC on this grid (a real "
+    "fluid, another grid or simulator), the transfers' numerical dissipation is fitted as viscosity and it comes out "
+    "low (a 2D collapsing column at 10 cells across: 0.19 decades low at 5 Pa s, 0 found at 0.5 Pa s); the scene key "
+    "flip = 0.99 cut that bias about 5x (docs/materials.md, 'In fits')"
 )
 
 
