@@ -662,7 +662,7 @@ def test_the_flip_blend_fits_a_viscosity_that_apic_underestimates_on_a_coarse_gr
     same gauges within 0.2-0.3 mm RMS), fitted for ``mu`` on the coarse grid
     (``benchmarks/flip_fit.py``; docs/materials.md, "In fits"). APIC's transfers dissipate,
     and the fit puts that loss into ``mu``: it comes out low; with the blend it is close.
-    Measured: log10(mu / truth) = -0.164 (APIC) and -0.028 (flip = 0.99); 35 s."""
+    Measured: log10(mu / truth) = -0.164 (APIC) and -0.028 (flip = 0.99); 40-50 s."""
     from benchmarks import flip_fit
 
     truth = {"mu": 5.0}

@@ -114,8 +114,8 @@ def scene_skeleton(dataset: Dataset, material: str) -> dict:
     camera sees whole (extended down to a hint floor); ``dx`` = its longest side /
     :data:`DEFAULT_CELLS`; ``gravity`` (0, −9.8, 0); ``frame_dt`` from the ``time`` values;
     ``frames`` to cover the last observed time; ``substeps`` so that dt = dx / 50 m/s;
-    ``collision = "cpic"``; ``flip`` 0 (APIC); the material's starting guess PAC-NeRF's (each parameter's declared ``guess``),
-    density 1000 kg/m³, ``ppc`` 8.
+    ``collision = "cpic"``; ``flip`` 0 (APIC); the material's starting guess PAC-NeRF's (each
+    parameter's declared ``guess``), density 1000 kg/m³, ``ppc`` 8.
     """
     from ..constitutive import MATERIALS
 
