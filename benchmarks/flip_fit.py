@@ -31,7 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 G = 9.81
@@ -69,15 +68,6 @@ def probes() -> dict:
     return {f"depth_{i}": depth_gauge(x, width=GAUGE_WIDTH) for i, x in enumerate(GAUGES)}
 
 
-class _State:
-    """What a depth gauge reads: particle positions and reference volumes (2D)."""
-
-    dim = 2
-
-    def __init__(self, x, vol0):
-        self.x, self.vol0 = x, vol0
-
-
 def load(cells: int, material: str, values: dict, flip: float):
     """The scene at a stable substep count (stress-wave CFL number 0.5)."""
     from jaxmpm import load_scene, stable_substeps
@@ -90,17 +80,15 @@ def load(cells: int, material: str, values: dict, flip: float):
 def readings(cells: int, material: str, truth: dict, flip: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Gauge readings ``(G, frames)`` in m of a healthy run, the times, and the substeps it ran."""
     from jaxmpm import simulate_healthy
+    from jaxmpm.identify import probe_series
 
     model, params = load(cells, material, truth, flip)
     traj, ran, discarded = simulate_healthy(model, params)
     for why in discarded:
         print(why, file=sys.stderr)
-    x = np.asarray(traj.x)
-    vol0 = jnp.concatenate([jnp.asarray(b.vol0) for b in model.bodies])
     fns = probes()
-    h = np.array([[float(fns[f"depth_{i}"](_State(jnp.asarray(x[f]), vol0), model)) for f in range(len(x))]
-                  for i in range(len(GAUGES))])
-    return h, np.arange(len(x)) * model.frame_dt, ran.substeps
+    h = np.array([probe_series(fns[f"depth_{i}"], ran, traj) for i in range(len(GAUGES))])
+    return h, np.arange(h.shape[1]) * model.frame_dt, ran.substeps
 
 
 def observation(t: np.ndarray, h: np.ndarray):

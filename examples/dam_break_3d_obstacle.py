@@ -164,10 +164,9 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    import jax.numpy as jnp
-
     from jaxmpm import extensions as X
     from jaxmpm import simulate_healthy
+    from jaxmpm.identify import probe_series
 
     out_dir = Path(out_dir)
     det = json.loads((out_dir / "report.json").read_text())["details"]
@@ -188,7 +187,6 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
     tt = np.arange(m.frames) * m.frame_dt
     t_obs, h_obs = load_gauges(t_end, every=1)
     probes = gauge_probes(dx, reading)
-    vol0 = jnp.concatenate([jnp.asarray(b.vol0) for b in m.bodies])
     runs = {"base": (seq.params, 0.0)}
     if causes:
         ext = [e for e in causes if e != "time_offset"]
@@ -198,16 +196,8 @@ def summary(out_dir, dx: float, t_end: float, wet: float = 0.05, tag: str = "", 
         traj, ran, res_health[kind] = simulate_healthy(m, params)
         for why in res_health[kind]:
             print(why, file=sys.stderr)
-        x, res_substeps[kind] = np.asarray(traj.x), ran.substeps
-        vals = {}
-        for g in GAUGES:
-            fn = probes[f"gauge_{g}"]
-            hs = []
-            for f in range(m.frames):
-                st = _State(jnp.asarray(x[f]), vol0)
-                hs.append(float(fn(st, m)))
-            vals[g] = (tt + shift, np.array(hs))
-        sim[kind] = vals
+        res_substeps[kind] = ran.substeps
+        sim[kind] = {g: (tt + shift, probe_series(probes[f"gauge_{g}"], m, traj)) for g in GAUGES}
 
     def arrival(t, h):
         i = np.flatnonzero(h > wet)
@@ -294,15 +284,6 @@ def dt_series(out_dir, dx: float, t_end: float, substeps: list[int], extended: d
            "rows": rows}
     (out_dir / f"dt_series{suffix}.json").write_text(json.dumps(res, indent=1))
     return res
-
-
-class _State:
-    """What a gauge probe reads: particle positions and reference volumes (3D)."""
-
-    dim = 3
-
-    def __init__(self, x, vol0):
-        self.x, self.vol0 = x, vol0
 
 
 def main(argv=None) -> int:

@@ -85,6 +85,22 @@ def test_a_depth_gauge_reads_the_depth_of_the_column_and_not_its_spray(dim):
     assert 0.0 < added <= v0 / 0.05 ** (dim - 1) * 1.0001
 
 
+def test_probe_series_reads_a_probe_at_every_recorded_frame():
+    """``probe_series``: a probe at each frame of a trajectory, the same as the probe applied
+    to that frame's state (the first frame: the initial state; the last: the final one). A
+    block in free fall: its top is lower at every frame."""
+    from jaxmpm.identify import probe_series
+
+    scene = load_scene(block_spec(2, frames=4, substeps=10))
+    traj = simulate(scene.model, scene.params)
+    fn = probe_function("top_y")
+    series = probe_series(fn, scene.model, traj)
+    assert series.shape == (4,)
+    assert series[0] == pytest.approx(float(fn(initial_state(scene.model, scene.params), scene.model)), rel=1e-6)
+    assert series[-1] == pytest.approx(float(fn(traj.final, scene.model)), rel=1e-6)
+    assert np.all(np.diff(series) < 0), series
+
+
 def _with_one_more(state, x, v0):
     """``state`` with positions ``x`` (one particle more, of volume ``v0``)."""
     from jaxmpm.state import make_state

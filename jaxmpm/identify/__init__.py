@@ -32,6 +32,7 @@ from .residuals import front as front
 from .residuals import gauge as gauge
 from .residuals import probe_function as probe_function
 from .residuals import probe_names as probe_names
+from .residuals import probe_series as probe_series
 from .residuals import register_probe as register_probe
 from .residuals import top as top
 from .solvers import SolverOutcome as SolverOutcome

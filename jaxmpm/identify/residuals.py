@@ -288,6 +288,13 @@ def probe_function(name: str, extra: dict[str, ProbeFn] | None = None) -> ProbeF
     )
 
 
+def probe_series(fn: ProbeFn, model: Model, traj) -> np.ndarray:
+    """``fn(state, model)`` read at every recorded frame of ``traj`` (a
+    :class:`~jaxmpm.step.Trajectory`): ``(frames,)``, each frame's positions put in the place of
+    the final state's (a probe reads positions and the particles' fixed properties)."""
+    return np.array([float(fn(eqx.tree_at(lambda s: s.x, traj.final, x), model)) for x in traj.x])
+
+
 # =========================================================================== time sampling
 
 
