@@ -8,15 +8,18 @@ The workflow (:func:`discover`; ``jaxmpm discover SCENE OBS.npz --out DIR``):
 2. **Show**: decompose the base model's residual by time phase (free flight, impact,
    post-contact, settling), region (each collider's contact band, free surface, interior),
    direction (normal / tangential to the collider, vertical / horizontal) and growth law in
-   time (log-log slope of the centre-of-mass error), and rerun the fit at ``dt / 2`` to
-   separate discretisation error from missing physics (:mod:`jaxmpm.discover_report`).
+   time (log-log slope of the centre-of-mass error), and rerun the fit at ``dt / 2`` and
+   with the other transfer (APIC / the FLIP blend) to separate discretisation error from
+   missing physics (:mod:`jaxmpm.discover_report`).
 3. **Name**: screen every extension of :mod:`jaxmpm.extensions` at its null value with a
    score test from forward-mode Jacobians (the Gauss–Newton prediction of how much of the
    training error the extension would remove, base parameters re-adjusted, bounds
    respected), refit the best few, and keep an extension only when it passes **all** of:
    held-out gain ``>= min_gain``, a likelihood-ratio test on per-frame errors at level
    ``alpha`` (one-sided for parameters whose null is a bound), and a held-out improvement
-   larger than the numerical error measured by the ``dt / 2`` check.
+   larger than the numerical error measured by the ``dt / 2`` check. The verdict cautions
+   against a kept extension whose improvement is within the transfer check's change: it may
+   stand in for the transfers' numerical dissipation.
 4. **Extend and measure**: the chosen extension's parameters with standard deviations
    (frame-clustered sandwich covariance), base and extended held-out errors and the gain;
    greedily add further extensions while the gain stays significant.
@@ -63,6 +66,8 @@ __all__ = [
     "discover",
     "default_parameters",
     "DEFAULT_EXTENSIONS",
+    "Numerics",
+    "transfer_caution",
 ]
 
 def _F():  # noqa: N802 - JAX's default float (float64 only when x64 is enabled)
@@ -126,6 +131,38 @@ def default_parameters(model: Model) -> list[str]:
                 continue
             names.append(f"{body.name}.{p}" if several else p)
     return list(dict.fromkeys(names))
+
+
+# =========================================================================== numerical checks
+
+#: The FLIP blend the transfer check runs an APIC model with (docs/materials.md, "Transfers").
+CHECK_FLIP = 0.99
+
+
+@dataclass(frozen=True)
+class Numerics:
+    """How a check changes a model's numerics (the default changes nothing).
+
+    Attributes:
+        substeps_factor: substeps per frame multiplied by this (2: the ``dt / 2`` check).
+        other_transfer: run the other transfer: an APIC model (``flip = 0``) with the FLIP
+            blend :data:`CHECK_FLIP`, a blended one with APIC (the transfer check).
+    """
+
+    substeps_factor: int = 1
+    other_transfer: bool = False
+
+    def apply(self, model: Model) -> Model:
+        if self.substeps_factor != 1:
+            model = model.with_substeps(model.substeps * self.substeps_factor)
+        if self.other_transfer:
+            model = model.with_flip(other_flip(model.flip))
+        return model
+
+
+def other_flip(flip: float) -> float:
+    """The blend the transfer check compares a model of blend ``flip`` with."""
+    return CHECK_FLIP if flip == 0.0 else 0.0
 
 
 # =========================================================================== compiled pieces
@@ -436,7 +473,7 @@ class _Problem:
     #: sequences that need no rollout in fits (all their groups held out); set by the workflow
     skip: frozenset = frozenset()
 
-    def trajectories(self, theta, substeps_factor: int = 1, skip=frozenset()):
+    def trajectories(self, theta, numerics: Numerics = Numerics(), skip=frozenset()):
         out = []
         for i, sd in enumerate(self.seqs):
             if i in skip:
@@ -445,13 +482,13 @@ class _Problem:
             clock = _time.perf_counter()
             active = self.active(theta)
             p = self.unpack(jnp.asarray(theta), i, active)
-            model = sd.model if substeps_factor == 1 else sd.model.with_substeps(sd.model.substeps * substeps_factor)
+            model = numerics.apply(sd.model)
             frames, ok = _rollout(model, p, sd.frames)
             out.append((frames, bool(ok), p))  # (bool waits for the rollout)
             seconds = _time.perf_counter() - clock
             self.costs.rollouts += 1
             self.costs.rollout_s += seconds
-            self.costs.call(("rollout", i, substeps_factor, active), seconds)
+            self.costs.call(("rollout", i, numerics, active), seconds)
         return out
 
     def health(self, theta) -> str | None:
@@ -469,18 +506,18 @@ class _Problem:
     #: its solver has just evaluated: a fit's estimate, a refit's start)
     REMEMBERED = 4
 
-    def residuals(self, theta, substeps_factor: int = 1, trajectories=None, training_only: bool = False) -> np.ndarray:
+    def residuals(self, theta, numerics: Numerics = Numerics(), trajectories=None, training_only: bool = False) -> np.ndarray:
         """All residuals at ``theta``; with ``training_only``, sequences whose data are all held
         out are not simulated (their entries are 0). The last :data:`REMEMBERED` evaluations
         are returned again without a rollout."""
         skip = self.skip if training_only else frozenset()
         key = None
         if trajectories is None:
-            key = (np.asarray(theta, np.float64).tobytes(), substeps_factor, skip)
+            key = (np.asarray(theta, np.float64).tobytes(), numerics, skip)
             known = next((r for k, r in self._remembered if k == key), None)
             if known is not None:
                 return known.copy()
-        trajs = trajectories or self.trajectories(theta, substeps_factor, skip)
+        trajs = trajectories or self.trajectories(theta, numerics, skip)
         rs = []
         for sd, tr in zip(self.seqs, trajs):
             if tr is None:
@@ -1032,7 +1069,10 @@ def discover(
         alpha: level of the likelihood-ratio test.
         max_extensions: most extensions added greedily.
         max_iter: Levenberg–Marquardt iterations per fit.
-        convergence: rerun the fitted base model at ``dt / 2`` (numerical-error check).
+        convergence: the numerical checks: rerun the fitted base model at ``dt / 2`` (its
+            change is the numerical error an improvement must exceed) and with the other
+            transfer (:class:`Numerics`; its change is reported, and the verdict cautions
+            against an extension whose improvement is within it: :func:`transfer_caution`).
         noise_floor: observation noise (RMS, in the data's units) if known: a base model whose
             held-out error is within 1.5 times it has nothing to explain.
         num_pixels: pixels per view and frame for silhouettes.
@@ -1099,7 +1139,7 @@ def discover(
     if convergence:
         say("convergence check: the fitted base model at dt/2")
         with phase("dt/2 check"):
-            r_half = problem.residuals(base.theta, substeps_factor=2)
+            r_half = problem.residuals(base.theta, Numerics(substeps_factor=2))
         diff = r_half - base.r
         numerical = problem.error(diff, heldout if heldout.any() else train)
         conv = {
@@ -1110,12 +1150,30 @@ def discover(
             "numerical_fraction": numerical / max(base_err, 1e-300),
         }
         say(f"  numerical error (dt vs dt/2): {numerical:.3g} ({100 * conv['numerical_fraction']:.1f} % of the base error)")
+        flip = problem.seqs[0].model.flip
+        say(f"transfer check: the fitted base model with {transfer_name(other_flip(flip))} in place of "
+            f"{transfer_name(flip)}")
+        rows = heldout if heldout.any() else train
+        with phase("transfer check"):
+            # the FLIP blend may need a smaller dt than APIC: if the swapped rollout is
+            # unhealthy at dt, both transfers are compared at dt/2
+            for factor, r_same in ((1, base.r), (2, r_half)):
+                r_other = problem.residuals(base.theta, Numerics(substeps_factor=factor, other_transfer=True))
+                if np.all(np.isfinite(r_other)):
+                    break
+                say(f"  the rollout with the other transfer is unhealthy at dt{'/2' if factor == 2 else ''}")
+        conv.update(_transfer_check(problem, r_same, r_other, rows, base_err, flip, factor))
+        conv["data_made_by_model"] = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
+        if conv["transfer_error"] is not None:
+            say(f"  transfer change{' at dt/2' if factor == 2 else ''}: {conv['transfer_error']:.3g} "
+                f"({100 * conv['transfer_fraction']:.1f} % of the base error)")
 
     # ---- 3-4. screen, refit, select (greedy)
     current = base
     current_names = problem.base_names()
     current_train_err, current_err = base_train_err, base_err
     selected: list[str] = []
+    improvements: dict[str, float] = {}  # each selected extension's held-out improvement
     all_cands: list[Candidate] = []
     remaining = list(problem.candidates)
     verdict_notes = []
@@ -1230,6 +1288,7 @@ def discover(
         if best_cand is None:
             break
         best_cand.selected = True
+        improvements[best_cand.id] = current_err - best_cand.heldout_error
         best_cand.reason = "selected: " + best_cand.reason
         selected.append(best_cand.id)
         current = best_fit
@@ -1251,6 +1310,9 @@ def discover(
         them = "it" if len(selected) == 1 else "them"
         verdict = (f"The base model misses {_describe(selected)}: adding {them} removes {gain:.0%} of the held-out error "
                    f"({base_err:.3g} -> {current_err:.3g}).")
+        caution = transfer_caution(conv, improvements)
+        if caution:
+            verdict += " " + caution
     else:
         why = verdict_notes[0] if verdict_notes else (
             "no extension removes a significant part of the held-out error" if all_cands else "no extension applies")
@@ -1260,6 +1322,11 @@ def discover(
                         f"{conv['numerical_fraction']:.0%} of the error (held-out error {conv['heldout_error_dt']:.3g} "
                         f"at dt, {conv['heldout_error_dt2']:.3g} at dt/2), so a smaller physical effect cannot be told "
                         "from the discretisation.")
+        if (conv.get("transfer_fraction") is not None and conv["transfer_fraction"] > 0.5
+                and not conv["data_made_by_model"]):
+            verdict += (f" The prediction depends on the transfers: {transfer_name(conv['flip_checked'])} in place of "
+                        f"{transfer_name(conv['flip'])} moves it by {conv['transfer_fraction']:.0%} of the error, so a "
+                        "smaller physical effect cannot be told from the grid's numerical dissipation.")
     # first-step candidates first (the ranked table of the contract), later steps after
     order = sorted(all_cands, key=lambda c: (c.step, -c.score))
     settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),
@@ -1297,6 +1364,53 @@ def discover(
         heldout_groups=heldout,
         base_history=base.history,
     )
+
+
+def transfer_name(flip: float) -> str:
+    """``"APIC"`` or ``"the FLIP blend <flip>"``."""
+    return "APIC" if flip == 0.0 else f"the FLIP blend {flip:g}"
+
+
+def _transfer_check(problem, r, r_other, rows, base_err: float, flip: float, substeps_factor: int) -> dict:
+    """The transfer check's entries of ``Discovery.convergence``: how far the fitted base
+    model's prediction moves (RMS over ``rows``, the held-out groups) when its transfers are
+    swapped (residuals ``r`` -> ``r_other``, both at ``dt / substeps_factor``); ``None``
+    where the swapped rollout is unhealthy."""
+    change = problem.error(r_other - r, rows)
+    ok = bool(np.isfinite(change))
+    return {
+        "flip": flip,
+        "flip_checked": other_flip(flip),
+        "transfer_dt_factor": 1.0 / substeps_factor,
+        "heldout_error_transfer": problem.error(r_other, rows) if ok else None,
+        "transfer_error": change if ok else None,
+        "transfer_fraction": change / max(base_err, 1e-300) if ok else None,
+    }
+
+
+def transfer_caution(convergence: dict, improvements: dict[str, float]) -> str | None:
+    """The verdict's caution for selected extensions whose held-out improvement (``id ->``
+    metres, or the data's unit) is no larger than the transfer check's change: they may stand
+    in for the transfers' numerical dissipation rather than for physics the data show. None
+    when there is no such extension, no transfer check, or the data may have been made by the
+    model on its grid (``convergence["data_made_by_model"]``:
+    :meth:`jaxmpm.observe.Observation.made_by`), which then has no such error."""
+    change = convergence.get("transfer_error")
+    if change is None or convergence.get("data_made_by_model"):
+        return None
+    within = [e for e, gain in improvements.items() if gain <= change]
+    if not within:
+        return None
+    one = len(within) == 1
+    it = "it" if one else "them"
+    gains = ", ".join(f"{improvements[e]:.3g}" for e in within)
+    fix = ("rerun discover with the FLIP blend (scene key flip = 0.99) or at a finer dx"
+           if convergence["flip"] == 0.0 else "rerun discover at a finer dx")
+    return (f"Caution: the held-out improvement of {', '.join(within)} ({gains}) is no larger than the change the "
+            f"transfers make: with {transfer_name(convergence['flip_checked'])} in place of "
+            f"{transfer_name(convergence['flip'])} the fitted base model's held-out prediction moves by {change:.3g}. "
+            f"Unless the data were made by this model's transfers on this grid, {'it' if one else 'they'} may stand in "
+            f"for the grid's numerical dissipation: {fix} before trusting {it} (docs/materials.md, \"In fits\").")
 
 
 def _describe(ids) -> str:

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import extensions as X
+from .discover import transfer_name
 from .fit_report import aligned
 
 PHASES = ("free flight", "impact", "post-contact", "settling")
@@ -44,7 +45,7 @@ def _pyplot():
 # =========================================================================== predictions
 
 
-def predictions(discovery, theta, substeps_factor: int = 1):
+def predictions(discovery, theta):
     """Per sequence: simulated tracks / probe values / silhouettes at the observed times.
 
     Returns a list (one per sequence) of dicts with ``"x"`` ``(T, N, D)`` at the observed
@@ -54,7 +55,7 @@ def predictions(discovery, theta, substeps_factor: int = 1):
     from .identify.residuals import Probes, Silhouette, hermite
 
     problem = discovery.problem
-    trajs = problem.trajectories(theta, substeps_factor)
+    trajs = problem.trajectories(theta)
     r_all = problem.residuals(theta, trajectories=trajs)
     out, start = [], 0
     for sd, (frames, ok, p) in zip(problem.seqs, trajs):
@@ -281,6 +282,9 @@ def signature_hints(strata: dict, convergence: dict) -> list[str]:
     if convergence and convergence.get("numerical_fraction", 0.0) > 0.3:
         hints.append(f"Refining dt moves the prediction by {convergence['numerical_fraction']:.0%} of the error: "
                      "part of the residual is numerical.")
+    if convergence and (convergence.get("transfer_fraction") or 0.0) > 0.3 and not convergence["data_made_by_model"]:
+        hints.append(f"The other transfer moves the prediction by {convergence['transfer_fraction']:.0%} of the error: "
+                     "part of the residual may be the grid's numerical dissipation.")
     return hints
 
 
@@ -635,7 +639,8 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
           "probe) is one sample, not each point.",
           f"* An extension is kept when its held-out gain is at least {s['min_gain']:.0%}, a likelihood-ratio test on the "
           f"training frames (n = {s['train_groups']}; boundary mixture ½χ²₀+½χ²₁ for one bounded parameter) gives p < {s['alpha']}, "
-          "and the held-out improvement exceeds the numerical error of the dt/2 check.", ""]
+          "and the held-out improvement exceeds the numerical error of the dt/2 check (the transfer check is reported "
+          "beside it and is not part of the rule).", ""]
     L += ["## The base model", ""]
     if d.base_values:
         L += ["| parameter | fitted value |", "|---|---|"]
@@ -672,10 +677,25 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
         L += [f"The fitted base model rerun at dt/2 moves the held-out prediction by {c['numerical_error']:.3g} "
               f"({c['numerical_fraction']:.0%} of the base model's held-out error {c['heldout_error_dt']:.3g}; "
               f"held-out error at dt/2: {c['heldout_error_dt2']:.3g}). "
-              + ("Most of the residual is therefore **not** numerical." if c["numerical_fraction"] < 0.5 else
+              + ("Most of the residual is therefore **not** a time-step error." if c["numerical_fraction"] < 0.5 else
                  "The prediction is not converged in dt: it moves by as much as half the residual, so no physical "
                  "explanation smaller than that can be told from the discretisation. Refine dt/dx before trusting one."),
               ""]
+        if c.get("transfer_error") is not None:
+            at = ("; both at dt/2, since with the other transfer the run is unhealthy at dt"
+                  if c.get("transfer_dt_factor", 1.0) != 1.0 else "")
+            L += [f"The same model with {transfer_name(c['flip_checked'])} in place of {transfer_name(c['flip'])} in its "
+                  f"transfers (docs/materials.md{at}) moves the held-out prediction by {c['transfer_error']:.3g} "
+                  f"({c['transfer_fraction']:.0%} of the base model's held-out error; held-out error with it: "
+                  f"{c['heldout_error_transfer']:.3g}). The transfers' numerical dissipation is a spatial error that "
+                  "refining dt does not reduce. This change is not part of the selection rule, since data made by "
+                  "this model on this grid would show it too without being in error; "
+                  + ("these data may have been (tracks of its own particles, or an embedded scene with its dx and "
+                     "transfers), so the verdict says nothing of it." if c.get("data_made_by_model") else
+                     "the verdict cautions against an extension whose held-out improvement is within it."), ""]
+        elif "transfer_error" in c:
+            L += [f"With {transfer_name(c['flip_checked'])} in place of {transfer_name(c['flip'])} the run is unhealthy "
+                  "at dt and at dt/2: no transfer check.", ""]
     else:
         L += ["Not run.", ""]
     L += ["## Candidates", "",

@@ -46,7 +46,6 @@ densities; a tanh-bounded Poisson ratio; degrees for the friction angle; linear 
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
@@ -844,13 +843,9 @@ APIC_VISCOSITY_NOTE = (
 def apic_viscosities(model: Model, paths: dict, observation: Observation) -> list[str]:
     """The fitted names (``paths``: name -> parameter path) that are a body's viscosity (a
     material parameter in Pa s) fitted with APIC transfers (``model.flip == 0``) to data that
-    this model on this grid need not have made: neither tracks of its own particles nor an
-    embedded scene with the same ``dx`` and no FLIP blend (:data:`APIC_VISCOSITY_NOTE`)."""
-    if model.flip != 0.0 or observation.tracks_particles:
-        return []
-    made = observation.scene_spec
-    if made is not None and float(made.get("flip", 0.0)) == 0.0 and math.isclose(float(made["dx"]), model.grid.dx,
-                                                                                rel_tol=1e-6):
+    this model on this grid need not have made (:meth:`jaxmpm.observe.Observation.made_by`;
+    :data:`APIC_VISCOSITY_NOTE`)."""
+    if model.flip != 0.0 or observation.made_by(model):
         return []
     return [n for n, p in paths.items()
             if p[0] == "bodies" and getattr(model.bodies[p[1]].material.parameter(p[2]), "unit", None) == "Pa s"]

@@ -181,6 +181,10 @@ class Model(eqx.Module):
         """The same model with a different number of substeps per frame."""
         return dataclasses.replace(self, substeps=substeps)
 
+    def with_flip(self, flip: float) -> "Model":
+        """The same model with another FLIP blend in the transfers (0: APIC)."""
+        return dataclasses.replace(self, flip=flip)
+
     def with_collision(self, collision: str) -> "Model":
         """The same model with another collision mode (builds the fields it needs)."""
         return dataclasses.replace(self, collision=collision)

@@ -124,6 +124,18 @@ class Observation:
     def scene_spec(self) -> dict | None:
         return None if self.scene is None else json.loads(self.scene)
 
+    def made_by(self, model) -> bool:
+        """Whether these data may have been made by ``model``'s transfers on its grid: the
+        embedded scene (``scene``) has its ``dx`` and FLIP blend, or, with none embedded, they
+        are tracks of its own particles (only a simulation with its particles makes those).
+        Data it did not make carry its transfers' numerical error (docs/materials.md, "In
+        fits")."""
+        made = self.scene_spec
+        if made is None:
+            return self.tracks_particles
+        return (float(made.get("flip", 0.0)) == model.flip
+                and math.isclose(float(made["dx"]), model.grid.dx, rel_tol=1e-6))
+
 
 def _is_real(value) -> bool:
     """Whether ``value`` is an array of real numbers (not strings, objects or booleans)."""
