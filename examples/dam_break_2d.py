@@ -91,7 +91,7 @@ def scene_spec(name: str, cells: int = 8, ppc: int = 4, z_max: float | None = No
     }
 
 
-def observation(name: str, spec: dict):
+def observation(name: str):
     from jaxmpm.observe import Observation
 
     t, x, _, _ = load_front(name)
@@ -100,8 +100,7 @@ def observation(name: str, spec: dict):
         probe_names=("front_x",),
         probe_times=t[None],
         probe_values=x[None],
-        scene=json.dumps(spec),
-    )
+    )  # no ``scene``: a scene embedded in an observation says that it made the data
 
 
 def sequences(cells: int, names=("mm_large", "ko", "mm_small")):
@@ -112,7 +111,7 @@ def sequences(cells: int, names=("mm_large", "ko", "mm_small")):
     for n in names:
         spec = scene_spec(n, cells)
         sc = load_scene(spec)
-        out.append(Sequence(sc.model, sc.params, observation(n, spec), name=n))
+        out.append(Sequence(sc.model, sc.params, observation(n), name=n))
     return out
 
 

@@ -122,13 +122,13 @@ def gauge_probes(dx: float, reading: str = "depth"):
     return {f"gauge_{k}": gauge(x, 0.5, width=2.0 * dx) for k, x in GAUGES.items()}
 
 
-def observation(spec: dict, t_end: float):
+def observation(t_end: float):
     from jaxmpm.observe import Observation
 
     t, h = load_gauges(t_end)
     names = tuple(f"gauge_{k}" for k in GAUGES)
-    return Observation(times=t, probe_names=names, probe_times=np.broadcast_to(t, h.shape).copy(), probe_values=h,
-                       scene=json.dumps(spec))
+    # no ``scene``: a scene embedded in an observation says that it made the data
+    return Observation(times=t, probe_names=names, probe_times=np.broadcast_to(t, h.shape).copy(), probe_values=h)
 
 
 def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float = 0.0, reading: str = "depth"):
@@ -142,7 +142,7 @@ def sequence(dx: float, t_end: float, substeps: int | None = None, flip: float =
     if substeps:
         spec["substeps"] = int(substeps)
     sc = load_scene(spec)
-    return Sequence(sc.model, sc.params, observation(spec, t_end), name="spheric_test2",
+    return Sequence(sc.model, sc.params, observation(t_end), name="spheric_test2",
                     probes=gauge_probes(dx, reading))
 
 

@@ -819,7 +819,7 @@ class Discovery:
     """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``).
 
     ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
-    dt/2 check, each step's screen and each refit): wall seconds; forward rollouts and their
+    dt/2 check, transfer check, each step's screen and each refit): wall seconds; forward rollouts and their
     seconds; forward-mode Jacobian rollouts, the tangents they carried and their seconds;
     Levenberg–Marquardt runs, iterations and rejected trial steps; compilation (estimated) and
     host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a table).
@@ -1410,7 +1410,8 @@ def transfer_caution(convergence: dict, improvements: dict[str, float]) -> str |
             f"transfers make: with {transfer_name(convergence['flip_checked'])} in place of "
             f"{transfer_name(convergence['flip'])} the fitted base model's held-out prediction moves by {change:.3g}. "
             f"Unless the data were made by this model's transfers on this grid, {'it' if one else 'they'} may stand in "
-            f"for the grid's numerical dissipation: {fix} before trusting {it} (docs/materials.md, \"In fits\").")
+            f"for the grid's numerical dissipation: {fix} before trusting {it} "
+            "(docs/discover.md, \"The transfer check\").")
 
 
 def _describe(ids) -> str:

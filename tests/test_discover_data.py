@@ -32,8 +32,12 @@ def test_martin_moyce_fronts_and_scene():
     spec = db.scene_spec("mm_large", cells=6)
     assert spec["bodies"][0]["hi"] == [db.SERIES["mm_large"][1], 2 * db.SERIES["mm_large"][1]]
     assert spec["colliders"][0]["contact"] == "slip"
-    obs = db.observation("mm_large", spec)
+    obs = db.observation("mm_large")
     assert obs.probe_names == ("front_x",) and obs.probe_values.shape == obs.probe_times.shape
+    # measured, so not the model's own data: fit's and discover's notes on the transfers apply
+    from jaxmpm.scene import load_scene
+
+    assert obs.scene is None and not obs.made_by(load_scene(spec).model)
 
 
 def test_spheric_gauges():
