@@ -389,7 +389,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.05, help="level of the likelihood-ratio test (default 0.05)")
     p.add_argument("--max-extensions", type=int, default=3, help="most extensions added greedily (default 3)")
     p.add_argument("--max-iter", type=int, default=25, help="Levenberg-Marquardt iterations per fit (default 25)")
-    p.add_argument("--no-convergence", action="store_true", help="skip the numerical checks (the fitted base model at dt/2 and with the other transfer)")
+    p.add_argument("--no-convergence", action="store_true",
+                   help="skip the numerical checks (the fitted base model at dt/2 and with the other transfer)")
     p.add_argument("--noise", type=float, default=None, help="known observation noise (RMS, data units)")
     p.add_argument("--pixels", type=int, default=256, help="pixels per view and frame for silhouettes")
     p.add_argument("--quiet", action="store_true", help="no progress output")

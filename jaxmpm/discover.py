@@ -819,10 +819,11 @@ class Discovery:
     """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``).
 
     ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
-    dt/2 check, transfer check, each step's screen and each refit): wall seconds; forward rollouts and their
-    seconds; forward-mode Jacobian rollouts, the tangents they carried and their seconds;
-    Levenberg–Marquardt runs, iterations and rejected trial steps; compilation (estimated) and
-    host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a table).
+    dt/2 check, transfer check, each step's screen and each refit): wall seconds; forward
+    rollouts and their seconds; forward-mode Jacobian rollouts, the tangents they carried and
+    their seconds; Levenberg–Marquardt runs, iterations and rejected trial steps; compilation
+    (estimated) and host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a
+    table).
     """
 
     discrepancy: bool

@@ -690,8 +690,9 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
                   f"{c['heldout_error_transfer']:.3g}). The transfers' numerical dissipation is a spatial error that "
                   "refining dt does not reduce. This change is not part of the selection rule, since data made by "
                   "this model on this grid would show it too without being in error; "
-                  + ("these data may have been (tracks of its own particles, or an embedded scene with its dx and "
-                     "transfers), so the verdict says nothing of it." if c.get("data_made_by_model") else
+                  + ("these data may be this model's own (tracks of its own particles, or made by an embedded "
+                     "scene with its dx and transfers), so the verdict says nothing of it."
+                     if c.get("data_made_by_model") else
                      "the verdict cautions against an extension whose held-out improvement is within it."), ""]
         elif "transfer_error" in c:
             L += [f"With {transfer_name(c['flip_checked'])} in place of {transfer_name(c['flip'])} the run is unhealthy "
