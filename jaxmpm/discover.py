@@ -68,6 +68,7 @@ __all__ = [
     "DEFAULT_EXTENSIONS",
     "Numerics",
     "transfer_caution",
+    "within_transfer_change",
 ]
 
 def _F():  # noqa: N802 - JAX's default float (float64 only when x64 is enabled)
@@ -1328,6 +1329,8 @@ def discover(
             verdict += (f" The prediction depends on the transfers: {transfer_name(conv['flip_checked'])} in place of "
                         f"{transfer_name(conv['flip'])} moves it by {conv['transfer_fraction']:.0%} of the error, so a "
                         "smaller physical effect cannot be told from the grid's numerical dissipation.")
+    if conv:
+        conv["within_transfer_change"] = within_transfer_change(conv, improvements)
     # first-step candidates first (the ranked table of the contract), later steps after
     order = sorted(all_cands, key=lambda c: (c.step, -c.score))
     settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),
@@ -1389,6 +1392,15 @@ def _transfer_check(problem, r, r_other, rows, base_err: float, flip: float, sub
     }
 
 
+def within_transfer_change(convergence: dict, improvements: dict[str, float]) -> list[str]:
+    """The extensions of ``improvements`` (``id ->`` held-out improvement) that
+    :func:`transfer_caution` cautions against."""
+    change = convergence.get("transfer_error")
+    if change is None or convergence.get("data_made_by_model"):
+        return []
+    return [e for e, gain in improvements.items() if gain <= change]
+
+
 def transfer_caution(convergence: dict, improvements: dict[str, float]) -> str | None:
     """The verdict's caution for selected extensions whose held-out improvement (``id ->``
     metres, or the data's unit) is no larger than the transfer check's change: they may stand
@@ -1396,12 +1408,10 @@ def transfer_caution(convergence: dict, improvements: dict[str, float]) -> str |
     when there is no such extension, no transfer check, or the data may have been made by the
     model on its grid (``convergence["data_made_by_model"]``:
     :meth:`jaxmpm.observe.Observation.made_by`), which then has no such error."""
-    change = convergence.get("transfer_error")
-    if change is None or convergence.get("data_made_by_model"):
-        return None
-    within = [e for e, gain in improvements.items() if gain <= change]
+    within = within_transfer_change(convergence, improvements)
     if not within:
         return None
+    change = convergence["transfer_error"]
     one = len(within) == 1
     it = "it" if one else "them"
     gains = ", ".join(f"{improvements[e]:.3g}" for e in within)

@@ -74,7 +74,7 @@ def test_gravity_error_is_found_with_the_full_workflow():
     # as the gravity error does (0.031 m against 0.010 m), but these are tracks of the model's
     # own particles (made by it on this grid), so the verdict cautions against nothing
     assert result.convergence["data_made_by_model"] and result.convergence["transfer_error"] > 0
-    assert "Caution" not in result.verdict
+    assert "Caution" not in result.verdict and result.convergence["within_transfer_change"] == []
     assert {c.step for c in result.candidates} == {1, 2}
     std = np.asarray(result.std["gravity.delta"])
     assert np.all(np.isfinite(std)) and np.all(std < 0.5)
@@ -130,9 +130,10 @@ def test_the_verdict_cautions_against_an_extension_within_the_transfer_check():
     nothing is said. The 3D dam break read by the
     highest particle is such a case: floor friction improves the forecast by 0.025 m, the
     FLIP blend moves it by 0.050 m (docs/case_studies/dam_break_3d_obstacle.md)."""
-    from jaxmpm.discover import transfer_caution
+    from jaxmpm.discover import transfer_caution, within_transfer_change
 
     conv = {"flip": 0.0, "flip_checked": 0.99, "transfer_error": 0.0498, "data_made_by_model": False}
+    assert within_transfer_change(conv, {"collider_friction": 0.025, "gravity": 0.05}) == ["collider_friction"]
     words = transfer_caution(conv, {"collider_friction": 0.025})
     assert words.startswith("Caution: the held-out improvement of collider_friction (0.025)")
     assert "with the FLIP blend 0.99 in place of APIC" in words and "moves by 0.0498" in words
