@@ -75,12 +75,11 @@ def spec(cells: int, material: str, values: dict, flip: float) -> dict:
     """The column (the elastic square) at ``cells`` cells across its width (2 x 2 particles a
     cell) with the material's fixed parameters and ``values``."""
     fixed, _ = MATERIALS[material]
-    lo, hi = ([DROP[0], DROP[1]], [DROP[0] + WIDTH, DROP[1] + WIDTH]) if material == "elastic" else ([0.0, 0.0],
-                                                                                                      [WIDTH, HEIGHT])
+    (x0, y0), (w, h) = (DROP, (WIDTH, WIDTH)) if material == "elastic" else ((0.0, 0.0), (WIDTH, HEIGHT))
     return {
         "dim": 2, "dx": WIDTH / cells, "domain": {"lo": [0.0, 0.0], "hi": [LENGTH, 1.5 * HEIGHT]},
         "gravity": [0.0, -G], "frames": FRAMES, "frame_dt": FRAME_DT, "substeps": 1, "flip": flip,
-        "bodies": [{"name": "body", "shape": "box", "lo": lo, "hi": hi, "ppc": 4,
+        "bodies": [{"name": "body", "shape": "box", "lo": [x0, y0], "hi": [x0 + w, y0 + h], "ppc": 4,
                     "material": {"model": material, **fixed, **values, "density": 1000.0}}],
         "colliders": [{"type": "plane", "name": "floor", "point": [0.0, 0.0], "normal": [0.0, 1.0], "contact": "slip"}],
     }
