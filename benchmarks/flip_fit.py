@@ -3,7 +3,7 @@
     python benchmarks/flip_fit.py [--material newtonian] [--mu 0.5,5,50] [--cells 10,20] [--ref-cells 40] [--out DIR]
     python benchmarks/flip_fit.py --material viscoplastic [--yield-stress 500] [--eta 0.5,5] ...
     python benchmarks/flip_fit.py --material elastic [--E 2e4,2e5] [--nu 0.3] ...
-    python benchmarks/flip_fit.py --material sand [--friction-angle 30] ...
+    python benchmarks/flip_fit.py --material sand [--friction-angle 30] [--angle-offset 3] [--float64] ...
 
 A 2D column (0.1 m wide, 0.2 m high) collapses on a free-slip floor for 0.3 s: PAC-NeRF's
 Newtonian fluid (a weakly compressible bulk modulus, sqrt(kappa / rho) = 22 m/s; ``mu``
@@ -105,11 +105,17 @@ def probes(material: str) -> dict:
     return {f"depth_{i}": depth_gauge(x, width=GAUGE_WIDTH) for i, x in enumerate(GAUGES)}
 
 
+#: the scenes' float type (``--float64`` switches JAX to 64 bits and sets it)
+DTYPE = "float32"
+
+
 def load(cells: int, material: str, values: dict, flip: float):
     """The scene at a stable substep count (stress-wave CFL number 0.5)."""
+    import jax.numpy as jnp
+
     from jaxmpm import load_scene, stable_substeps
 
-    scene = load_scene(spec(cells, material, values, flip))
+    scene = load_scene(spec(cells, material, values, flip), dtype=jnp.dtype(DTYPE))
     n = stable_substeps(scene.model, scene.params, limit=0.5)
     return scene.model.with_substeps(n), scene.params
 
@@ -177,9 +183,18 @@ def main(argv=None) -> int:
     ap.add_argument("--ref-cells", type=int, default=40)
     ap.add_argument("--angle-offset", type=float, default=START_OFFSET["friction_angle"],
                     help="the friction angle's fits start this many degrees above the truth (default 3)")
+    ap.add_argument("--float64", action="store_true",
+                    help="simulate and fit in float64 (rows get \"float64\": true in their key; references "
+                         "already in OUT are reused, whatever their precision)")
     ap.add_argument("--out", default="flip_fit_out")
     a = ap.parse_args(argv)
     START_OFFSET["friction_angle"] = a.angle_offset
+    if a.float64:
+        import jax
+
+        global DTYPE
+        jax.config.update("jax_enable_x64", True)
+        DTYPE = "float64"
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     rows_path = out / "rows.jsonl"
@@ -212,7 +227,7 @@ def main(argv=None) -> int:
         obs = observation(ref[0.99][1], ref[0.99][0], a.material)
         for cells in [int(c) for c in a.cells.split(",")]:
             for flip in (0.0, 0.99):
-                key = {**case, "cells": cells, "flip": flip}
+                key = {**case, "cells": cells, "flip": flip, **({"float64": True} if a.float64 else {})}
                 if json.dumps(key) not in done:
                     record(key, fit_material(cells, a.material, truth, flip, obs))
     return 0
