@@ -1139,15 +1139,15 @@ def discover(
     conv = {}
     numerical = 0.0
     if convergence:
+        rows = heldout if heldout.any() else train  # the groups both checks are measured on
         say("convergence check: the fitted base model at dt/2")
         with phase("dt/2 check"):
             r_half = problem.residuals(base.theta, Numerics(substeps_factor=2))
-        diff = r_half - base.r
-        numerical = problem.error(diff, heldout if heldout.any() else train)
+        numerical = problem.error(r_half - base.r, rows)
         conv = {
             "dt_factor": 0.5,
             "heldout_error_dt": base_err,
-            "heldout_error_dt2": problem.error(r_half, heldout) if heldout.any() else problem.error(r_half, train),
+            "heldout_error_dt2": problem.error(r_half, rows),
             "numerical_error": numerical,
             "numerical_fraction": numerical / max(base_err, 1e-300),
         }
@@ -1155,7 +1155,6 @@ def discover(
         flip = problem.seqs[0].model.flip
         say(f"transfer check: the fitted base model with {transfer_name(other_flip(flip))} in place of "
             f"{transfer_name(flip)}")
-        rows = heldout if heldout.any() else train
         with phase("transfer check"):
             # the FLIP blend may need a smaller dt than APIC: if the swapped rollout is
             # unhealthy at dt, both transfers are compared at dt/2
@@ -1412,15 +1411,14 @@ def transfer_caution(convergence: dict, improvements: dict[str, float]) -> str |
     if not within:
         return None
     change = convergence["transfer_error"]
-    one = len(within) == 1
-    it = "it" if one else "them"
+    it, they = ("it", "it") if len(within) == 1 else ("them", "they")
     gains = ", ".join(f"{improvements[e]:.3g}" for e in within)
-    fix = ("rerun discover with the FLIP blend (scene key flip = 0.99) or at a finer dx"
+    fix = (f"rerun discover with the FLIP blend (scene key flip = {CHECK_FLIP:g}) or at a finer dx"
            if convergence["flip"] == 0.0 else "rerun discover at a finer dx")
     return (f"Caution: the held-out improvement of {', '.join(within)} ({gains}) is no larger than the change the "
             f"transfers make: with {transfer_name(convergence['flip_checked'])} in place of "
             f"{transfer_name(convergence['flip'])} the fitted base model's held-out prediction moves by {change:.3g}. "
-            f"Unless the data were made by this model's transfers on this grid, {'it' if one else 'they'} may stand in "
+            f"Unless the data were made by this model's transfers on this grid, {they} may stand in "
             f"for the grid's numerical dissipation: {fix} before trusting {it} "
             "(docs/discover.md, \"The transfer check\").")
 
