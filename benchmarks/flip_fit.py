@@ -4,6 +4,7 @@
     python benchmarks/flip_fit.py --material viscoplastic [--yield-stress 500] [--eta 0.5,5] ...
     python benchmarks/flip_fit.py --material elastic [--E 2e4,2e5] [--nu 0.3] ...
     python benchmarks/flip_fit.py --material sand [--friction-angle 30] [--angle-offset 3] [--float64] ...
+    python benchmarks/flip_fit.py ... --numerics
 
 A 2D column (0.1 m wide, 0.2 m high) collapses on a free-slip floor for 0.3 s: PAC-NeRF's
 Newtonian fluid (a weakly compressible bulk modulus, sqrt(kappa / rho) = 22 m/s; ``mu``
@@ -25,6 +26,9 @@ APIC's transfers take kinetic energy out at every step (docs/materials.md, "Tran
 numerical viscosity a fit can only absorb into the material's parameters; the blend keeps
 most of it. This measures how much that moves what a fit identifies. The true values are
 every combination of the fitted parameters' lists (``--mu``, ``--yield-stress``, ``--eta``).
+With ``--numerics`` each fit also runs its numerics check (``FitConfig.numerics``): the
+moves a refit at dt/2 and one with the other transfer would make (row key ``numerics``), to
+set against the other transfer's own fit in the next row.
 
 Each row goes to ``OUT/rows.jsonl`` as soon as it is measured (a rerun skips the rows it
 already has), the reference readings to ``OUT/reference_*.npz``; results in docs/materials.md
@@ -142,16 +146,16 @@ def observation(t: np.ndarray, h: np.ndarray, material: str = "newtonian"):
                        probe_times=np.broadcast_to(t[keep], h[:, keep].shape).copy(), probe_values=h[:, keep])
 
 
-def fit_material(cells: int, material: str, truth: dict, flip: float, obs) -> dict:
+def fit_material(cells: int, material: str, truth: dict, flip: float, obs, numerics: bool = False) -> dict:
     """Fit the material's fitted parameters at ``cells``, each from :func:`start`; the row:
     fitted ``values``, ``log10_error`` (log10 of fitted over true; None where the fit drove a
     value to 0) for those started at three times the truth, ``error`` (fitted less true) for
-    the others, ``std`` and the fit's figures."""
+    the others, ``std``, with ``numerics`` the numerics check's moves, and the fit's figures."""
     from jaxmpm import FitConfig, fit
 
     names = list(truth)
     model, params = load(cells, material, {k: start(k, v) for k, v in truth.items()}, flip)
-    config = FitConfig(stages=None, probes=probes(material), scan=())
+    config = FitConfig(stages=None, probes=probes(material), scan=(), numerics=numerics)
     t0 = time.perf_counter()
     res = fit(model, params, obs, names, config)
     values = {k: float(res.values[k]) for k in names}
@@ -160,6 +164,7 @@ def fit_material(cells: int, material: str, truth: dict, flip: float, obs) -> di
             "log10_error": {k: math.log10(values[k] / truth[k]) if values[k] > 0 else None for k in log_names},
             "error": {k: values[k] - truth[k] for k in names if k in START_OFFSET},
             "std": {k: float(res.std[k]) for k in names}, "loss": float(res.loss[-1]),
+            **({"numerics": res.to_json()["numerics"]} if numerics else {}),
             "iterations": res.iterations, "converged": res.converged, "substeps": res.substeps,
             "seconds": time.perf_counter() - t0, "message": res.message, "notes": res.notes}
 
@@ -186,6 +191,8 @@ def main(argv=None) -> int:
     ap.add_argument("--float64", action="store_true",
                     help="simulate and fit in float64 (rows get \"float64\": true in their key; references "
                          "already in OUT are reused, whatever their precision)")
+    ap.add_argument("--numerics", action="store_true",
+                    help="run each fit's numerics check (rows get \"numerics\": true in their key)")
     ap.add_argument("--out", default="flip_fit_out")
     a = ap.parse_args(argv)
     START_OFFSET["friction_angle"] = a.angle_offset
@@ -227,9 +234,10 @@ def main(argv=None) -> int:
         obs = observation(ref[0.99][1], ref[0.99][0], a.material)
         for cells in [int(c) for c in a.cells.split(",")]:
             for flip in (0.0, 0.99):
-                key = {**case, "cells": cells, "flip": flip, **({"float64": True} if a.float64 else {})}
+                key = {**case, "cells": cells, "flip": flip, **({"float64": True} if a.float64 else {}),
+                       **({"numerics": True} if a.numerics else {})}
                 if json.dumps(key) not in done:
-                    record(key, fit_material(cells, a.material, truth, flip, obs))
+                    record(key, fit_material(cells, a.material, truth, flip, obs, a.numerics))
     return 0
 
 

@@ -197,7 +197,7 @@ def cmd_fit(args) -> int:
 
     config = FitConfig(method=args.method, stages=None if args.stages == "single" else "auto", weights=weights,
                        max_steps=args.max_steps, renderer=args.renderer, num_pixels=args.pixels,
-                       velocity_until=args.velocity_until, scan=scan, resolution=args.resolution,
+                       velocity_until=args.velocity_until, scan=scan, resolution=args.resolution, numerics=args.numerics,
                        refine_velocity=REFINE_VELOCITY[args.refine_velocity],
                        polish=None if args.polish == "auto" else ())
     result = fit_scene(scene, obs, names, config, progress=progress, log=say)
@@ -367,6 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", action="store_true",
                    help="raise each std to the scale the loss resolves where it is rough (noise-free data, CPIC "
                         "contact): two loss evaluations per parameter and try")
+    p.add_argument("--numerics", action="store_true",
+                   help="after the fit, how far a refit at dt/2 and one with the other transfer (APIC / the FLIP "
+                        "blend) would move each parameter (one Gauss-Newton step each): its numerical error, which "
+                        "the std does not include; three more rollouts of the last stage")
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.add_argument("--profile", action="store_true",

@@ -56,6 +56,7 @@ from .identify.residuals import Frames, image_terms, make_fit_renderer, probe_te
 from .identify.solvers import levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
+from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name
 from .observe import Observation
 from .step import health_message, simulate, unhealthy
 
@@ -132,38 +133,6 @@ def default_parameters(model: Model) -> list[str]:
                 continue
             names.append(f"{body.name}.{p}" if several else p)
     return list(dict.fromkeys(names))
-
-
-# =========================================================================== numerical checks
-
-#: The FLIP blend the transfer check runs an APIC model with (docs/materials.md, "Transfers").
-CHECK_FLIP = 0.99
-
-
-@dataclass(frozen=True)
-class Numerics:
-    """How a check changes a model's numerics (the default changes nothing).
-
-    Attributes:
-        substeps_factor: substeps per frame multiplied by this (2: the ``dt / 2`` check).
-        other_transfer: run the other transfer: an APIC model (``flip = 0``) with the FLIP
-            blend :data:`CHECK_FLIP`, a blended one with APIC (the transfer check).
-    """
-
-    substeps_factor: int = 1
-    other_transfer: bool = False
-
-    def apply(self, model: Model) -> Model:
-        if self.substeps_factor != 1:
-            model = model.with_substeps(model.substeps * self.substeps_factor)
-        if self.other_transfer:
-            model = model.with_flip(other_flip(model.flip))
-        return model
-
-
-def other_flip(flip: float) -> float:
-    """The blend the transfer check compares a model of blend ``flip`` with."""
-    return CHECK_FLIP if flip == 0.0 else 0.0
 
 
 # =========================================================================== compiled pieces
@@ -1367,11 +1336,6 @@ def discover(
         heldout_groups=heldout,
         base_history=base.history,
     )
-
-
-def transfer_name(flip: float) -> str:
-    """``"APIC"`` or ``"the FLIP blend <flip>"``."""
-    return "APIC" if flip == 0.0 else f"the FLIP blend {flip:g}"
 
 
 def _transfer_check(problem, r, r_other, rows, base_err: float, flip: float, substeps_factor: int) -> dict:

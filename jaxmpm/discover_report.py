@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import extensions as X
-from .discover import transfer_name
+from .numerics import transfer_name
 from .fit_report import aligned
 
 PHASES = ("free flight", "impact", "post-contact", "settling")

@@ -36,6 +36,13 @@ parameter's profile direction and further out until it changes as its curvature 
 the stage's record then holds a ``resolution`` entry and a note says so), mapped to physical
 units; each parameter's from the last stage that fitted it.
 
+**Numerical error** (``numerics=True``, ``jaxmpm fit --numerics``): after each parameter's
+last stage, the stage's residuals are computed again at the fitted point with dt halved and
+with the other transfer (APIC / the FLIP blend, :mod:`jaxmpm.numerics`), and one Gauss–Newton
+step on each gives how far a refit would move the parameters (:func:`numerics_check`). A
+statistical std says nothing about this error; a note says where a move exceeds
+:data:`NUMERICS_NOTE_STDS` standard deviations.
+
 Parameters are named (``"mu"``, ``"kappa"``, ``"E"``, ``"nu"``, ``"yield_stress"``,
 ``"eta"``, ``"friction_angle"``, ``"density"``, ``"velocity"``, ``"gravity"``,
 ``"<collider>.friction"``, ``"<body>.<param>"``: :func:`jaxmpm.identify.resolve_name`) and
@@ -63,6 +70,7 @@ from .identify.parameters import (
     check_varied,
     declaration,
     default_names,
+    from_unconstrained,
     get_param,
     leaf_name,
     resolve_name,
@@ -71,8 +79,9 @@ from .identify.parameters import (
 )
 from .identify.residuals import Objective, Residuals, build_objective, frames_needed, observation_cameras
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
-from .identify.uncertainty import gauss_newton_covariance, physical_std, resolved_std
+from .identify.uncertainty import gauss_newton_covariance, gauss_newton_shift, physical_std, resolved_std
 from .model import CPIC_RESTITUTION_NOTE, Model, Params, weak_restitution
+from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name
 from .observe import Observation, check_observation_matches, check_scene_compatible
 from .parameters import Log10
 
@@ -180,6 +189,12 @@ class FitConfig:
             session 33). False: held, PAC-NeRF's protocol. True: always refitted.
         renderer, num_pixels, probes, colors: image and probe options of the objective.
         uncertainty: compute the Gauss–Newton standard deviations.
+        numerics: after each parameter's last stage, how far a refit at dt/2 and one with the
+            other transfer would move it (:func:`numerics_check`: one Gauss–Newton step on
+            each, no solver run); ``FitResult.numerics`` holds the moves, the stage's record
+            the details, and a note names each parameter moved by more than
+            :data:`NUMERICS_NOTE_STDS` standard deviations. Costs three forward rollouts of
+            the stage (two at dt/2) and their compilation.
         resolution: raise each standard deviation to the scale the loss resolves where it is
             rough (:func:`jaxmpm.identify.uncertainty.resolved_std`): for noise-free or
             CPIC fits, whose Gauss–Newton std only measures round-off and jumps. Two loss
@@ -235,6 +250,7 @@ class FitConfig:
     probes: dict | None = None
     colors: Any = "auto"
     uncertainty: bool = True
+    numerics: bool = False
     resolution: bool = False
     scan: Sequence[float] | None = None
     polish: Sequence[float] | None = None
@@ -438,6 +454,10 @@ class FitResult:
             checks; ``rejected_steps``, ``escapes``; ``uncertainty_s``). Where the fit was run
             again from the guess, the kept start's stages.
         notes: remarks (dt halvings, skipped stages).
+        numerics: with :attr:`FitConfig.numerics`, by name: ``{"dt": move, "transfer":
+            move}``, how far a refit at dt/2 and one with the other transfer would move the
+            value (physical units, the value's shape; None where that rollout is unhealthy;
+            :func:`numerics_check`); empty otherwise.
         timing: where the time went (seconds): ``total_s``, ``planning_s`` (contact detection
             for the stages), ``solver_s``, ``compile_s`` (estimated), ``uncertainty_s``; where
             the fit was run again from the guess, ``other_start`` (the start not kept:
@@ -459,6 +479,7 @@ class FitResult:
     stages: list[dict] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     timing: dict = field(default_factory=dict)
+    numerics: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """The ``fit.json`` contract (DESIGN §5.3) plus status fields."""
@@ -477,6 +498,7 @@ class FitResult:
             "stages": json.loads(json.dumps(self.stages, default=float)),
             "notes": list(self.notes),
             "timing": json.loads(json.dumps(self.timing, default=float)),
+            "numerics": {k: {c: None if v is None else plain(v) for c, v in d.items()} for k, d in self.numerics.items()},
         }
 
 
@@ -588,6 +610,7 @@ def fit(
     losses: list[float] = []
     records: list[dict] = []
     std: dict[str, np.ndarray] = {}
+    numerics: dict[str, dict] = {}
     last_stage_of = _last_stage_of(plan)
     scan = (() if observation.tracks_particles else SCAN_DECADES) if c.scan is None else tuple(c.scan)
     polish = (() if observation.tracks_particles else VELOCITY_POLISH) if c.polish is None else tuple(c.polish)
@@ -739,6 +762,20 @@ def fit(
                     + ": moves below that change the loss by jumps, not as its derivative predicts")
                 say(notes[-1])
             record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
+        if c.numerics and final_names:
+            t_num = time.perf_counter()
+            say(f"stage {si + 1}: numerics check (its residuals at dt/2 and with the other transfer)")
+            check = record["numerics"] = numerics_check(
+                stage_residuals, lambda other, until=stage.until: build_objective(other, observation, until=until,
+                                                                                 **objective_options),
+                {n: y_all[n] for n in snames}, outcome.jacobian)
+            numerics.update({n: {k: None if check[k]["shift"] is None else check[k]["shift"][n]
+                                 for k in ("dt", "transfer")} for n in final_names})
+            moved = numerics_notes(check, final_names, std, made_by_model=observation.made_by(model))
+            for note in moved:
+                notes.append(f"stage {si + 1}: {note}")
+                say(notes[-1])
+            record["timing"]["numerics_s"] = time.perf_counter() - t_num
         if replans_left and stage.until is not None and set(snames) == set(kinematic_names):
             replans_left -= 1
             now = apply_unconstrained(model, params, list(y_all), y_all)
@@ -807,6 +844,7 @@ def fit(
         "solver_s": sum(t.get("start_s", 0.0) + t.get("steps_s", 0.0) + t.get("checks_s", 0.0) for t in stage_timing),
         "compile_s": sum(t.get("compile_s", 0.0) for t in stage_timing),
         "uncertainty_s": sum(t.get("uncertainty_s", 0.0) for t in stage_timing),
+        "numerics_s": sum(t.get("numerics_s", 0.0) for t in stage_timing),
         "polish_s": sum(t.get("polish_s", 0.0) for t in stage_timing),
     }
     result = FitResult(
@@ -824,6 +862,7 @@ def fit(
         stages=records,
         notes=notes,
         timing=timing,
+        numerics=numerics,
     )
     if not converged and any(r.get("scan", {}).get("moved") for r in records):
         result = _also_from_the_guess(result, scene_model, params, observation, names, c, progress=progress, log=log)
@@ -1006,9 +1045,14 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
 
 
 @eqx.filter_jit
-def _stage_loss(residuals: StageResiduals, y: dict):
-    """``sum(residuals(y)**2)``, forward only: one compilation per stage structure."""
-    return jnp.sum(residuals(y) ** 2)
+def _stage_residual_values(residuals: StageResiduals, y: dict):
+    """``residuals(y)``, forward only: one compilation per stage structure."""
+    return residuals(y)
+
+
+def _stage_loss(residuals: StageResiduals, y: dict) -> float:
+    """``sum(residuals(y)**2)`` (float64 on the host)."""
+    return float(np.sum(np.asarray(_stage_residual_values(residuals, y), np.float64) ** 2))
 
 
 def polish_velocity(residuals: StageResiduals, y: dict, names: Sequence[str], moves: Sequence[float]):
@@ -1099,6 +1143,102 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
     std, resolved = resolved_std(loss_of, np.asarray(flat, np.float64), r, J, statistical, dtype=flat.dtype)
     unresolved = [n for n, ok in as_dict(resolved.astype(float)).items() if not np.all(np.asarray(ok) > 0.5)]
     return physical_std(list(y), y, as_dict(std)), gauss_newton, unresolved
+
+
+def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict,
+                   jacobian=None) -> dict:
+    """How the fitted variables ``y`` of one stage depend on the numerics: the stage's
+    residuals at ``y`` computed again with dt halved and with the other transfer
+    (:class:`jaxmpm.numerics.Numerics`), and how far one Gauss–Newton step on each moves ``y``
+    (:func:`jaxmpm.identify.uncertainty.gauss_newton_shift`, with the Jacobian at ``y``): a
+    linearised refit, no solver run.
+
+    The dt/2 move estimates the time discretisation's error of the parameters (about the
+    whole of it for a first-order scheme); the transfer move, part of the spatial one, which
+    dt/2 cannot see (at least one transfer is at least half of it from the converged answer).
+
+    Arguments:
+        residuals: the stage's residuals (its model is the one fitted).
+        objective_for: ``objective_for(model)``, the stage's objective for a model with other
+            numerics (same observation, frames and options).
+        y: the fitted variables (optimisation space) by name.
+        jacobian: the solver's ``(rj, (r, J) at y or None)`` when it has them.
+
+    Returns:
+        ``{"residual_rms": RMS of the residuals at y, "dt": check, "transfer": check}``, each
+        check ``{"substeps", "residual_change" (RMS of the residuals' change), "shift_y" and
+        "shift" (by name: the move in optimisation space, e.g. decades, and in physical
+        units)}``; the transfer check also has ``flip`` and ``flip_checked``. Where the swapped
+        transfer's rollout is unhealthy at dt (the blend may need a smaller dt), both
+        transfers are compared at dt/2 (its ``substeps`` say so); where a rollout is
+        unhealthy, its check's moves are None.
+    """
+    model = residuals.program.model
+    flat, unravel = jax.flatten_util.ravel_pytree(y)
+    rj, at_y = jacobian if jacobian is not None else (None, None)
+    if at_y is None:
+        at_y = (rj or residuals_and_jacobian(residuals, y)[0])(flat)
+    r, J = (np.asarray(a, np.float64) for a in at_y)
+
+    def rerun(numerics: Numerics) -> tuple[np.ndarray, np.ndarray]:
+        program = objective_for(numerics.apply(model)).program
+        other = StageResiduals(program, residuals.base, residuals.names)
+        return tuple(np.asarray(a, np.float64) for a in residuals_and_jacobian(other, y)[0](flat))
+
+    def moves(same: tuple, other: tuple, **which) -> dict:
+        change = other[0] - same[0]
+        if not np.all(np.isfinite(change)):
+            return {**which, "residual_change": None, "shift_y": None, "shift": None}
+        dy = unravel(jnp.asarray(gauss_newton_shift(*same, *other), flat.dtype))
+        return {**which, "residual_change": float(np.sqrt(np.mean(change ** 2))),
+                "shift_y": {n: _plain(dy[n]) for n in y},
+                "shift": {n: _plain(from_unconstrained(n, y[n] + dy[n]) - from_unconstrained(n, y[n])) for n in y}}
+
+    half = rerun(Numerics(substeps_factor=2))
+    factor, same, other = 1, (r, J), rerun(Numerics(other_transfer=True))
+    if not np.all(np.isfinite(other[0])) and np.all(np.isfinite(half[0])):
+        factor, same, other = 2, half, rerun(Numerics(substeps_factor=2, other_transfer=True))
+    return {
+        "residual_rms": float(np.sqrt(np.mean(r ** 2))),
+        "dt": moves((r, J), half, substeps=2 * model.substeps),
+        "transfer": moves(same, other, substeps=factor * model.substeps, flip=model.flip,
+                          flip_checked=other_flip(model.flip)),
+    }
+
+
+#: :func:`numerics_notes` names a parameter that a numerics check moves by more than this many
+#: of its standard deviations.
+NUMERICS_NOTE_STDS = 2.0
+
+
+def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool) -> list[str]:
+    """One note per name of ``names`` that :func:`numerics_check`'s ``check`` moves by more
+    than :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units):
+    its error is then numerical more than statistical. None without a std, and none where
+    the data may have been made by this model on its grid (``made_by_model``:
+    :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's."""
+    if made_by_model:
+        return []
+    transfer = check["transfer"]
+    what = {"dt": ("at dt/2", "fit with more substeps per frame"),
+            "transfer": (f"with {transfer_name(transfer['flip_checked'])} in place of {transfer_name(transfer['flip'])}"
+                         + (" (both at dt/2)" if transfer["substeps"] == check["dt"]["substeps"] else ""),
+                         f"fit with the scene key flip = {CHECK_FLIP:g} or at a finer dx" if transfer["flip"] == 0.0
+                         else "fit at a finer dx")}
+    notes = []
+    for n in names:
+        if n not in std:
+            continue
+        sd = np.asarray(std[n], float)
+        over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
+        over = [(k, move) for k, move in over if np.any(np.abs(move) > NUMERICS_NOTE_STDS * sd)]
+        if over:
+            told = "; ".join(f"{what[k][0]} by {_fmt_std(move)} ({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std)"
+                             for k, move in over)
+            notes.append(f"{n} would move {told} (a linearised refit; its std {_fmt_std(sd)}): its error is numerical "
+                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
+                         "(docs/fitting.md, 'Numerical error of the parameters')")
+    return notes
 
 
 def fit_scene(scene, observation: Observation, names: Sequence[str] | None = None, config: FitConfig = FitConfig(),

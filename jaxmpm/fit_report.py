@@ -34,12 +34,18 @@ def aligned(rows: list[tuple[str, ...]], rule: bool = False) -> list[str]:
 def format_table(result, truth: dict | None = None) -> str:
     """The parameters of a :class:`~jaxmpm.fit.FitResult` as an aligned text table.
 
-    Columns: parameter, initial, estimate, std; with ``truth`` ({name: value}) also the truth and
-    the error (``|dlog10|`` for log10-fitted parameters, else ``|d|`` in the parameter's unit).
+    Columns: parameter, initial, estimate, std; with the numerics check
+    (``result.numerics``) the moves a refit at dt/2 and one with the other transfer would make;
+    with ``truth`` ({name: value}) also the truth and the error (``|dlog10|`` for log10-fitted
+    parameters, else ``|d|`` in the parameter's unit).
     """
-    rows = [("parameter", "initial", "estimate", "std") + (("truth", "error") if truth else ())]
+    checks = ("dt", "transfer") if result.numerics else ()
+    rows = [("parameter", "initial", "estimate", "std") + tuple(f"{c} move" for c in ("dt/2", "transfer")[:len(checks)])
+            + (("truth", "error") if truth else ())]
     for name, value in result.values.items():
+        moves = result.numerics.get(name, {})
         row = (name, format_value(result.initial.get(name)), format_value(value), format_value(result.std.get(name)))
+        row += tuple(format_value(moves.get(c)) for c in checks)
         if truth:
             row += (format_value(truth[name]), _error_text(name, value, truth[name]))
         rows.append(row)
@@ -52,6 +58,7 @@ def format_timing(result) -> str:
     lines = [f"time: {t['total_s']:.1f} s in all; planning (contact detection) {t['planning_s']:.1f} s, "
              f"solvers {t['solver_s']:.1f} s (compilation ~{t['compile_s']:.1f} s), "
              f"uncertainty {t['uncertainty_s']:.1f} s"
+             + (f", numerics check {t['numerics_s']:.1f} s" if t.get("numerics_s") else "")
              + (f", velocity polish {t['polish_s']:.1f} s" if t.get("polish_s") else "")]
     rows = [("stage", "iterations", "start", "median step", "all steps", "checks", "rejected", "std")]
     for k, st in enumerate(result.stages, 1):

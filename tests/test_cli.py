@@ -108,9 +108,14 @@ def test_fit_recovers_mu_from_a_perturbed_start(simulated, capsys):
     start = folder / "start.toml"
     start.write_text(TINY_SCENE.format(mu=140.0))
     out = folder / "fit.json"
-    assert main(["fit", str(start), str(obs), "--params", "mu", "--out", str(out)]) == 0
+    assert main(["fit", str(start), str(obs), "--params", "mu", "--out", str(out), "--numerics"]) == 0
     result = json.loads(out.read_text())
     assert {"params", "std", "loss", "seconds", "iterations"} <= set(result)
+    # --numerics: the moves of a refit at dt/2 and with the FLIP blend, in fit.json and the table
+    assert set(result["numerics"]) == {"mu"} and set(result["numerics"]["mu"]) == {"dt", "transfer"}
+    assert all(np.isfinite(v) for v in result["numerics"]["mu"].values())
+    assert result["stages"][-1]["numerics"]["transfer"]["flip_checked"] == 0.99
+    assert not any("would move" in note for note in result["notes"])  # the data are this model's own
     assert set(result["params"]) == set(result["std"]) == {"mu"}
     assert result["params"]["mu"] == pytest.approx(200.0, rel=1e-2)
     assert np.isfinite(result["std"]["mu"]) and result["std"]["mu"] >= 0
@@ -121,6 +126,7 @@ def test_fit_recovers_mu_from_a_perturbed_start(simulated, capsys):
     assert result["seconds"] > 0
     captured = capsys.readouterr()
     assert "mu" in captured.out and "Traceback" not in captured.err
+    assert "dt/2 move" in captured.out and "transfer move" in captured.out
 
 
 @pytest.mark.parametrize("params, words", [
