@@ -56,7 +56,7 @@ from .identify.residuals import Frames, image_terms, make_fit_renderer, probe_te
 from .identify.solvers import levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
-from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name
+from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name, transfer_runs
 from .observe import Observation
 from .step import health_message, simulate, unhealthy
 
@@ -1125,13 +1125,11 @@ def discover(
         say(f"transfer check: the fitted base model with {transfer_name(other_flip(flip))} in place of "
             f"{transfer_name(flip)}")
         with phase("transfer check"):
-            # the FLIP blend may need a smaller dt than APIC: if the swapped rollout is
-            # unhealthy at dt, both transfers are compared at dt/2
-            for factor, r_same in ((1, base.r), (2, r_half)):
-                r_other = problem.residuals(base.theta, Numerics(substeps_factor=factor, other_transfer=True))
-                if np.all(np.isfinite(r_other)):
-                    break
-                say(f"  the rollout with the other transfer is unhealthy at dt{'/2' if factor == 2 else ''}")
+            factor, r_same, r_other = transfer_runs(lambda numerics: problem.residuals(base.theta, numerics), base.r,
+                                                    r_half, lambda r: bool(np.all(np.isfinite(r))))
+        for at, unhealthy in (("dt", factor == 2), ("dt/2", not np.all(np.isfinite(r_other)))):
+            if unhealthy:
+                say(f"  the rollout with the other transfer is unhealthy at {at}")
         conv.update(_transfer_check(problem, r_same, r_other, rows, base_err, flip, factor))
         conv["data_made_by_model"] = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
         if conv["transfer_error"] is not None:

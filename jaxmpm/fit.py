@@ -37,8 +37,8 @@ the stage's record then holds a ``resolution`` entry and a note says so), mapped
 units; each parameter's from the last stage that fitted it.
 
 **Numerical error** (``numerics=True``, ``jaxmpm fit --numerics``): after each parameter's
-last stage, the stage's residuals are computed again at the fitted point with dt halved and
-with the other transfer (APIC / the FLIP blend, :mod:`jaxmpm.numerics`), and one Gauss–Newton
+last stage, the stage's residuals and Jacobian are computed again at the fitted point with
+dt halved and with the other transfer (APIC / the FLIP blend, :mod:`jaxmpm.numerics`), and one Gauss–Newton
 step on each gives how far a refit would move the parameters (:func:`numerics_check`). A
 statistical std says nothing about this error; a note says where a move exceeds
 :data:`NUMERICS_NOTE_STDS` standard deviations.
@@ -81,7 +81,7 @@ from .identify.residuals import Objective, Residuals, build_objective, frames_ne
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
 from .identify.uncertainty import gauss_newton_covariance, gauss_newton_shift, physical_std, resolved_std
 from .model import CPIC_RESTITUTION_NOTE, Model, Params, weak_restitution
-from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name
+from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name, transfer_runs
 from .observe import Observation, check_observation_matches, check_scene_compatible
 from .parameters import Log10
 
@@ -193,8 +193,8 @@ class FitConfig:
             other transfer would move it (:func:`numerics_check`: one Gauss–Newton step on
             each, no solver run); ``FitResult.numerics`` holds the moves, the stage's record
             the details, and a note names each parameter moved by more than
-            :data:`NUMERICS_NOTE_STDS` standard deviations. Costs three forward rollouts of
-            the stage (two at dt/2) and their compilation.
+            :data:`NUMERICS_NOTE_STDS` standard deviations. Costs three residual-and-Jacobian
+            rollouts of the stage (two at dt/2) and their compilation.
         resolution: raise each standard deviation to the scale the loss resolves where it is
             rough (:func:`jaxmpm.identify.uncertainty.resolved_std`): for noise-free or
             CPIC fits, whose Gauss–Newton std only measures round-off and jumps. Two loss
@@ -1045,14 +1045,9 @@ def scan_start(residuals: Callable[[dict], Any], y0: dict, names: Sequence[str],
 
 
 @eqx.filter_jit
-def _stage_residual_values(residuals: StageResiduals, y: dict):
-    """``residuals(y)``, forward only: one compilation per stage structure."""
-    return residuals(y)
-
-
-def _stage_loss(residuals: StageResiduals, y: dict) -> float:
-    """``sum(residuals(y)**2)`` (float64 on the host)."""
-    return float(np.sum(np.asarray(_stage_residual_values(residuals, y), np.float64) ** 2))
+def _stage_loss(residuals: StageResiduals, y: dict):
+    """``sum(residuals(y)**2)``, forward only: one compilation per stage structure."""
+    return jnp.sum(residuals(y) ** 2)
 
 
 def polish_velocity(residuals: StageResiduals, y: dict, names: Sequence[str], moves: Sequence[float]):
@@ -1148,10 +1143,10 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
 def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict,
                    jacobian=None) -> dict:
     """How the fitted variables ``y`` of one stage depend on the numerics: the stage's
-    residuals at ``y`` computed again with dt halved and with the other transfer
-    (:class:`jaxmpm.numerics.Numerics`), and how far one Gauss–Newton step on each moves ``y``
-    (:func:`jaxmpm.identify.uncertainty.gauss_newton_shift`, with the Jacobian at ``y``): a
-    linearised refit, no solver run.
+    residuals and Jacobian at ``y`` computed again with dt halved and with the other transfer
+    (:class:`jaxmpm.numerics.Numerics`), and how far a Gauss–Newton step on each moves ``y``
+    beyond the fitted problem's own (:func:`jaxmpm.identify.uncertainty.gauss_newton_shift`):
+    a linearised refit, no solver run.
 
     The dt/2 move estimates the time discretisation's error of the parameters (about the
     whole of it for a first-order scheme); the transfer move, part of the spatial one, which
@@ -1195,9 +1190,7 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
                 "shift": {n: _plain(from_unconstrained(n, y[n] + dy[n]) - from_unconstrained(n, y[n])) for n in y}}
 
     half = rerun(Numerics(substeps_factor=2))
-    factor, same, other = 1, (r, J), rerun(Numerics(other_transfer=True))
-    if not np.all(np.isfinite(other[0])) and np.all(np.isfinite(half[0])):
-        factor, same, other = 2, half, rerun(Numerics(substeps_factor=2, other_transfer=True))
+    factor, same, other = transfer_runs(rerun, (r, J), half, lambda run: bool(np.all(np.isfinite(run[0]))))
     return {
         "residual_rms": float(np.sqrt(np.mean(r ** 2))),
         "dt": moves((r, J), half, substeps=2 * model.substeps),

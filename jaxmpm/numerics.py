@@ -11,10 +11,13 @@ docs/fitting.md, "Numerical error of the parameters").
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, TypeVar
 
 from .model import Model
 
-__all__ = ["CHECK_FLIP", "Numerics", "other_flip", "transfer_name"]
+__all__ = ["CHECK_FLIP", "Numerics", "other_flip", "transfer_name", "transfer_runs"]
+
+Run = TypeVar("Run")
 
 #: The FLIP blend the transfer check runs an APIC model with (docs/materials.md, "Transfers").
 CHECK_FLIP = 0.99
@@ -49,3 +52,16 @@ def other_flip(flip: float) -> float:
 def transfer_name(flip: float) -> str:
     """``"APIC"`` or ``"the FLIP blend <flip>"``."""
     return "APIC" if flip == 0.0 else f"the FLIP blend {flip:g}"
+
+
+def transfer_runs(rerun: Callable[["Numerics"], Run], at_dt: Run, at_half: Run,
+                  healthy: Callable[[Run], bool]) -> tuple[int, Run, Run]:
+    """The transfer check's pair of runs, ``(substeps_factor, same transfer, other
+    transfer)``: the other transfer at dt (``rerun(Numerics(other_transfer=True))``) beside
+    ``at_dt``; where that is unhealthy (the FLIP blend may need a smaller dt than APIC), at
+    dt/2 beside ``at_half`` (the dt/2 check's run). Where both are unhealthy, the dt/2 pair."""
+    for factor, same in ((1, at_dt), (2, at_half)):
+        other = rerun(Numerics(substeps_factor=factor, other_transfer=True))
+        if healthy(other):
+            break
+    return factor, same, other
