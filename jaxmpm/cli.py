@@ -369,8 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "contact): two loss evaluations per parameter and try")
     p.add_argument("--numerics", action="store_true",
                    help="after the fit, how far a refit at dt/2 and one with the other transfer (APIC / the FLIP "
-                        "blend) would move each parameter (one Gauss-Newton step each): its numerical error, which "
-                        "the std does not include; three more rollouts of the last stage")
+                        "blend) move each parameter (a few iterations each, from the result): its numerical error, "
+                        "which the std does not include")
     p.add_argument("--quiet", action="store_true", help="no per-iteration output")
     p.add_argument("--float64", action="store_true", help="fit in float64")
     p.add_argument("--profile", action="store_true",

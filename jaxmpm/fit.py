@@ -37,11 +37,10 @@ the stage's record then holds a ``resolution`` entry and a note says so), mapped
 units; each parameter's from the last stage that fitted it.
 
 **Numerical error** (``numerics=True``, ``jaxmpm fit --numerics``): after each parameter's
-last stage, the stage's residuals and Jacobian are computed again at the fitted point with
-dt halved and with the other transfer (APIC / the FLIP blend, :mod:`jaxmpm.numerics`), and one Gauss–Newton
-step on each gives how far a refit would move the parameters (:func:`numerics_check`). A
-statistical std says nothing about this error; a note says where a move exceeds
-:data:`NUMERICS_NOTE_STDS` standard deviations.
+last stage, the stage is refitted from its result with dt halved and with the other transfer
+(APIC / the FLIP blend, :mod:`jaxmpm.numerics`), a few iterations each: how far they move the
+parameters is their numerical error (:func:`numerics_check`), which a statistical std does
+not include; a note says where a move exceeds :data:`NUMERICS_NOTE_STDS` standard deviations.
 
 Parameters are named (``"mu"``, ``"kappa"``, ``"E"``, ``"nu"``, ``"yield_stress"``,
 ``"eta"``, ``"friction_angle"``, ``"density"``, ``"velocity"``, ``"gravity"``,
@@ -79,7 +78,7 @@ from .identify.parameters import (
 )
 from .identify.residuals import Objective, Residuals, build_objective, frames_needed, observation_cameras
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
-from .identify.uncertainty import gauss_newton_covariance, gauss_newton_shift, physical_std, resolved_std
+from .identify.uncertainty import gauss_newton_covariance, physical_std, resolved_std
 from .model import CPIC_RESTITUTION_NOTE, Model, Params, weak_restitution
 from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name, transfer_runs
 from .observe import Observation, check_observation_matches, check_scene_compatible
@@ -190,11 +189,12 @@ class FitConfig:
         renderer, num_pixels, probes, colors: image and probe options of the objective.
         uncertainty: compute the Gauss–Newton standard deviations.
         numerics: after each parameter's last stage, how far a refit at dt/2 and one with the
-            other transfer would move it (:func:`numerics_check`: one Gauss–Newton step on
-            each, no solver run); ``FitResult.numerics`` holds the moves, the stage's record
-            the details, and a note names each parameter moved by more than
-            :data:`NUMERICS_NOTE_STDS` standard deviations. Costs three residual-and-Jacobian
-            rollouts of the stage (two at dt/2) and their compilation.
+            other transfer move it (:func:`numerics_check`: at most
+            :data:`NUMERICS_REFIT_STEPS` iterations each, from the fitted point);
+            ``FitResult.numerics`` holds the moves, the stage's record the details, and a
+            note names each parameter moved by more than :data:`NUMERICS_NOTE_STDS`
+            standard deviations. Costs two short refits of the stage (one at dt/2) and
+            their compilation.
         resolution: raise each standard deviation to the scale the loss resolves where it is
             rough (:func:`jaxmpm.identify.uncertainty.resolved_std`): for noise-free or
             CPIC fits, whose Gauss–Newton std only measures round-off and jumps. Two loss
@@ -455,7 +455,7 @@ class FitResult:
             again from the guess, the kept start's stages.
         notes: remarks (dt halvings, skipped stages).
         numerics: with :attr:`FitConfig.numerics`, by name: ``{"dt": move, "transfer":
-            move}``, how far a refit at dt/2 and one with the other transfer would move the
+            move}``, how far a refit at dt/2 and one with the other transfer move the
             value (physical units, the value's shape; None where that rollout is unhealthy;
             :func:`numerics_check`); empty otherwise.
         timing: where the time went (seconds): ``total_s``, ``planning_s`` (contact detection
@@ -764,11 +764,11 @@ def fit(
             record["timing"]["uncertainty_s"] = time.perf_counter() - t_std
         if c.numerics and final_names:
             t_num = time.perf_counter()
-            say(f"stage {si + 1}: numerics check (its residuals at dt/2 and with the other transfer)")
+            say(f"stage {si + 1}: numerics check (the stage refitted at dt/2 and with the other transfer)")
             check = record["numerics"] = numerics_check(
                 stage_residuals, lambda other, until=stage.until: build_objective(other, observation, until=until,
                                                                                  **objective_options),
-                {n: y_all[n] for n in snames}, outcome.jacobian)
+                {n: y_all[n] for n in snames}, rtol=c.rtol, atol=c.atol)
             numerics.update({n: {k: None if check[k]["shift"] is None else check[k]["shift"][n]
                                  for k in ("dt", "transfer")} for n in final_names})
             moved = numerics_notes(check, final_names, std, made_by_model=observation.made_by(model))
@@ -1140,13 +1140,18 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
     return physical_std(list(y), y, as_dict(std)), gauss_newton, unresolved
 
 
-def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict,
-                   jacobian=None) -> dict:
-    """How the fitted variables ``y`` of one stage depend on the numerics: the stage's
-    residuals and Jacobian at ``y`` computed again with dt halved and with the other transfer
-    (:class:`jaxmpm.numerics.Numerics`), and how far a Gauss–Newton step on each moves ``y``
-    beyond the fitted problem's own (:func:`jaxmpm.identify.uncertainty.gauss_newton_shift`):
-    a linearised refit, no solver run.
+#: The Levenberg–Marquardt iterations of each of :func:`numerics_check`'s refits, from the
+#: fitted point (one Gauss–Newton step underestimated a move 5x where the loss is far from
+#: quadratic: a viscosity near 0 with APIC, docs/fitting.md).
+NUMERICS_REFIT_STEPS = 4
+
+
+def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict, *,
+                   rtol: float, atol: float) -> dict:
+    """How the fitted variables ``y`` of one stage depend on the numerics: the stage refitted
+    from ``y`` with dt halved and with the other transfer (:class:`jaxmpm.numerics.Numerics`),
+    each by at most :data:`NUMERICS_REFIT_STEPS` Levenberg–Marquardt iterations (the fit's
+    solver, tolerances ``rtol`` and ``atol``): a short refit, warm from a converged fit.
 
     The dt/2 move estimates the time discretisation's error of the parameters (about the
     whole of it for a first-order scheme); the transfer move, part of the spatial one, which
@@ -1157,44 +1162,37 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
         objective_for: ``objective_for(model)``, the stage's objective for a model with other
             numerics (same observation, frames and options).
         y: the fitted variables (optimisation space) by name.
-        jacobian: the solver's ``(rj, (r, J) at y or None)`` when it has them.
 
     Returns:
-        ``{"residual_rms": RMS of the residuals at y, "dt": check, "transfer": check}``, each
-        check ``{"substeps", "residual_change" (RMS of the residuals' change), "shift_y" and
-        "shift" (by name: the move in optimisation space, e.g. decades, and in physical
-        units)}``; the transfer check also has ``flip`` and ``flip_checked``. Where the swapped
-        transfer's rollout is unhealthy at dt (the blend may need a smaller dt), both
-        transfers are compared at dt/2 (its ``substeps`` say so); where a rollout is
-        unhealthy, its check's moves are None.
+        ``{"dt": check, "transfer": check}``, each check ``{"substeps", "loss" ([at y, after
+        the refit]), "iterations", "converged", "shift_y" and "shift" (by name: the move in
+        optimisation space, e.g. decades, and in physical units)}``; the transfer check also
+        has ``flip`` and ``flip_checked``. Where the swapped transfer's rollout is unhealthy
+        at dt (the blend may need a smaller dt), both transfers are compared at dt/2 (its
+        ``substeps`` say so: the move is then between the two refits at dt/2); where a
+        rollout is unhealthy at ``y``, its check's entries are None.
     """
     model = residuals.program.model
-    flat, unravel = jax.flatten_util.ravel_pytree(y)
-    rj, at_y = jacobian if jacobian is not None else (None, None)
-    if at_y is None:
-        at_y = (rj or residuals_and_jacobian(residuals, y)[0])(flat)
-    r, J = (np.asarray(a, np.float64) for a in at_y)
 
-    def rerun(numerics: Numerics) -> tuple[np.ndarray, np.ndarray]:
-        program = objective_for(numerics.apply(model)).program
-        other = StageResiduals(program, residuals.base, residuals.names)
-        return tuple(np.asarray(a, np.float64) for a in residuals_and_jacobian(other, y)[0](flat))
+    def refit(numerics: Numerics) -> SolverOutcome:
+        other = StageResiduals(objective_for(numerics.apply(model)).program, residuals.base, residuals.names)
+        return levenberg_marquardt(other, y, max_steps=NUMERICS_REFIT_STEPS, rtol=rtol, atol=atol, warm=True)
 
-    def moves(same: tuple, other: tuple, **which) -> dict:
-        change = other[0] - same[0]
-        if not np.all(np.isfinite(change)):
-            return {**which, "residual_change": None, "shift_y": None, "shift": None}
-        dy = unravel(jnp.asarray(gauss_newton_shift(*same, *other), flat.dtype))
-        return {**which, "residual_change": float(np.sqrt(np.mean(change ** 2))),
-                "shift_y": {n: _plain(dy[n]) for n in y},
-                "shift": {n: _plain(from_unconstrained(n, y[n] + dy[n]) - from_unconstrained(n, y[n])) for n in y}}
+    def moves(start: dict, run: SolverOutcome, **which) -> dict:
+        if run.unhealthy_start:
+            return {**which, "loss": None, "iterations": None, "converged": None, "shift_y": None, "shift": None}
+        end = run.y
+        return {**which, "loss": [float(run.losses[0]), float(min(run.losses))], "iterations": run.iterations,
+                "converged": bool(run.converged),
+                "shift_y": {n: _plain(end[n] - start[n]) for n in y},
+                "shift": {n: _plain(from_unconstrained(n, end[n]) - from_unconstrained(n, start[n])) for n in y}}
 
-    half = rerun(Numerics(substeps_factor=2))
-    factor, same, other = transfer_runs(rerun, (r, J), half, lambda run: bool(np.all(np.isfinite(run[0]))))
+    half = refit(Numerics(substeps_factor=2))
+    fitted = SolverOutcome(y=y, losses=[], iterations=0, converged=True, message="the fit")
+    factor, same, other = transfer_runs(refit, fitted, half, lambda run: not run.unhealthy_start)
     return {
-        "residual_rms": float(np.sqrt(np.mean(r ** 2))),
-        "dt": moves((r, J), half, substeps=2 * model.substeps),
-        "transfer": moves(same, other, substeps=factor * model.substeps, flip=model.flip,
+        "dt": moves(y, half, substeps=2 * model.substeps),
+        "transfer": moves(same.y, other, substeps=factor * model.substeps, flip=model.flip,
                           flip_checked=other_flip(model.flip)),
     }
 
@@ -1228,7 +1226,7 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
         if over:
             told = "; ".join(f"{what[k][0]} by {_fmt_std(move)} ({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std)"
                              for k, move in over)
-            notes.append(f"{n} would move {told} (a linearised refit; its std {_fmt_std(sd)}): its error is numerical "
+            notes.append(f"{n} would move {told} (a short refit; its std {_fmt_std(sd)}): its error is numerical "
                          f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
                          "(docs/fitting.md, 'Numerical error of the parameters')")
     return notes

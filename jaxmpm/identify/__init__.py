@@ -38,5 +38,4 @@ from .residuals import top as top
 from .solvers import SolverOutcome as SolverOutcome
 from .solvers import levenberg_marquardt as levenberg_marquardt
 from .uncertainty import gauss_newton_covariance as gauss_newton_covariance
-from .uncertainty import gauss_newton_shift as gauss_newton_shift
 from .uncertainty import resolved_std as resolved_std

@@ -11,7 +11,7 @@ import numpy as np
 
 from .parameters import from_unconstrained
 
-__all__ = ["gauss_newton_covariance", "gauss_newton_shift", "physical_std", "resolved_std"]
+__all__ = ["gauss_newton_covariance", "physical_std", "resolved_std"]
 
 
 def gauss_newton_covariance(J: np.ndarray, r: np.ndarray, *, groups: np.ndarray | None = None,
@@ -47,24 +47,6 @@ def gauss_newton_covariance(J: np.ndarray, r: np.ndarray, *, groups: np.ndarray 
     else:
         n = m if count is None else min(m, int(count))
     return float(r @ r) / max(n - p, 1) * A_inv
-
-
-def gauss_newton_shift(r: np.ndarray, J: np.ndarray, r_other: np.ndarray, J_other: np.ndarray) -> np.ndarray:
-    """How far a least-squares fit's variables (optimisation space) move when its residuals
-    ``r`` ``(M,)`` with Jacobian ``J`` ``(M, p)`` at the fitted point become ``r_other`` with
-    ``J_other`` (the same residuals of a model with other numerics, or of other data), to
-    first order: the Gauss–Newton step of the other problem less that of the fitted one,
-    ``-J_other⁺ r_other + J⁺ r`` (``⁺``: least-squares solution). A linearised refit.
-
-    The fitted problem's own step (0 at its minimum) is taken away, so that a fit stopped short
-    does not add its remaining step. Both Jacobians matter where the fit leaves a misfit: the
-    other problem's gradient ``J_otherᵀ r_other`` changes with its Jacobian as much as with
-    its residuals (a viscosity fitted with APIC to data of the FLIP blend, refitted at dt/2:
-    the step with ``J`` alone for both pointed the wrong way). Returns ``(p,)``."""
-    def step(r, J):
-        return np.linalg.lstsq(np.asarray(J, np.float64), -np.asarray(r, np.float64), rcond=None)[0]
-
-    return step(r_other, J_other) - step(r, J)
 
 
 #: The loss "follows its Gauss–Newton model" at a move ``±δ`` when the mean of its two measured
