@@ -164,7 +164,7 @@ def fit_material(cells: int, material: str, truth: dict, flip: float, obs, numer
             "log10_error": {k: math.log10(values[k] / truth[k]) if values[k] > 0 else None for k in log_names},
             "error": {k: values[k] - truth[k] for k in names if k in START_OFFSET},
             "std": {k: float(res.std[k]) for k in names}, "loss": float(res.loss[-1]),
-            **({"numerics": res.to_json()["numerics"]} if numerics else {}),
+            **({"numerics": res.to_json()["numerics"], "numerics_s": res.timing["numerics_s"]} if numerics else {}),
             "iterations": res.iterations, "converged": res.converged, "substeps": res.substeps,
             "seconds": time.perf_counter() - t0, "message": res.message, "notes": res.notes}
 

@@ -1188,11 +1188,10 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
                 "shift": {n: _plain(from_unconstrained(n, end[n]) - from_unconstrained(n, start[n])) for n in y}}
 
     half = refit(Numerics(substeps_factor=2))
-    fitted = SolverOutcome(y=y, losses=[], iterations=0, converged=True, message="the fit")
-    factor, same, other = transfer_runs(refit, fitted, half, lambda run: not run.unhealthy_start)
+    factor, start, other = transfer_runs(refit, y, half.y, lambda run: not run.unhealthy_start)
     return {
         "dt": moves(y, half, substeps=2 * model.substeps),
-        "transfer": moves(same.y, other, substeps=factor * model.substeps, flip=model.flip,
+        "transfer": moves(start, other, substeps=factor * model.substeps, flip=model.flip,
                           flip_checked=other_flip(model.flip)),
     }
 

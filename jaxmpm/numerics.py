@@ -18,6 +18,7 @@ from .model import Model
 __all__ = ["CHECK_FLIP", "Numerics", "other_flip", "transfer_name", "transfer_runs"]
 
 Run = TypeVar("Run")
+Same = TypeVar("Same")
 
 #: The FLIP blend the transfer check runs an APIC model with (docs/materials.md, "Transfers").
 CHECK_FLIP = 0.99
@@ -54,12 +55,13 @@ def transfer_name(flip: float) -> str:
     return "APIC" if flip == 0.0 else f"the FLIP blend {flip:g}"
 
 
-def transfer_runs(rerun: Callable[["Numerics"], Run], at_dt: Run, at_half: Run,
-                  healthy: Callable[[Run], bool]) -> tuple[int, Run, Run]:
-    """The transfer check's pair of runs, ``(substeps_factor, same transfer, other
-    transfer)``: the other transfer at dt (``rerun(Numerics(other_transfer=True))``) beside
-    ``at_dt``; where that is unhealthy (the FLIP blend may need a smaller dt than APIC), at
-    dt/2 beside ``at_half`` (the dt/2 check's run). Where both are unhealthy, the dt/2 pair."""
+def transfer_runs(rerun: Callable[["Numerics"], Run], at_dt: Same, at_half: Same,
+                  healthy: Callable[[Run], bool]) -> tuple[int, Same, Run]:
+    """The transfer check's pair, ``(substeps_factor, same transfer, other transfer)``: the
+    other transfer run at dt (``rerun(Numerics(other_transfer=True))``) beside ``at_dt`` (what
+    the fitted numerics give); where that run is unhealthy (the FLIP blend may need a
+    smaller dt than APIC), at dt/2 beside ``at_half`` (the dt/2 check's). Where both are
+    unhealthy, the dt/2 pair."""
     for factor, same in ((1, at_dt), (2, at_half)):
         other = rerun(Numerics(substeps_factor=factor, other_transfer=True))
         if healthy(other):
