@@ -35,7 +35,7 @@ def format_table(result, truth: dict | None = None) -> str:
     """The parameters of a :class:`~jaxmpm.fit.FitResult` as an aligned text table.
 
     Columns: parameter, initial, estimate, std; with the numerics check
-    (``result.numerics``) the moves a refit at dt/2 and one with the other transfer would make;
+    (``result.numerics``) the moves of a refit at dt/2 and of one with the other transfer;
     with ``truth`` ({name: value}) also the truth and the error (``|dlog10|`` for log10-fitted
     parameters, else ``|d|`` in the parameter's unit).
     """

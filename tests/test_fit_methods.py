@@ -655,7 +655,7 @@ def test_a_viscosity_fitted_with_apic_to_data_it_did_not_make_gets_a_note(materi
     assert "flip = 0.99" in APIC_VISCOSITY_NOTE and "docs/materials.md" in APIC_VISCOSITY_NOTE
 
 
-def test_the_numerics_check_predicts_the_refits_at_dt_half_and_with_the_blend():
+def test_the_numerics_check_finds_the_refits_at_dt_half_and_with_the_blend():
     """``FitConfig(numerics=True)``: a 2D fluid block (mu = 20 Pa s, 64 particles) dropped onto
     a floor, tracked for 6 frames in a run with the FLIP blend 0.99, fitted for ``mu`` with
     APIC. The check's two short refits (at most NUMERICS_REFIT_STEPS iterations each) find
