@@ -372,7 +372,8 @@ def test_fit_choice_reaches_the_fit(simulated, monkeypatch, flag, choice, value)
                                          (["--refine-velocity=no"], False), (["--refine-velocity", "auto"], None)])
 def test_identify_refine_velocity_choice_reaches_identify(tmp_path, monkeypatch, args, value):
     """``jaxmpm identify --refine-velocity [auto|yes|no]``: absent or ``auto`` lets identify
-    decide from the masks' noise (None), the bare flag still means yes (as before session 51)."""
+    decide from the masks' noise (None), the bare flag still means yes (as before session 51);
+    ``--numerics`` (with the bare flag) reaches it too."""
     import jaxmpm.reconstruct.pipeline as pipeline
 
     seen = {}
@@ -386,5 +387,7 @@ def test_identify_refine_velocity_choice_reaches_identify(tmp_path, monkeypatch,
 
     monkeypatch.setattr(pipeline, "identify", fake_identify)
     with pytest.raises(Stop):
-        main(["identify", str(tmp_path), "--material", "newtonian", "--out", str(tmp_path / "out")] + args)
+        main(["identify", str(tmp_path), "--material", "newtonian", "--out", str(tmp_path / "out")] + args
+             + (["--numerics"] if value is True else []))
     assert seen["refine_velocity"] is value
+    assert seen["numerics"] is (value is True)

@@ -395,14 +395,16 @@ def test_surfel_collider_holds_material_like_the_box(tmp_path, elevation, tolera
 def test_identify_cli_end_to_end(dataset, tmp_path):
     out = tmp_path / "id"
     code = main(["identify", str(dataset[0]), "--material", "newtonian", "--out", str(out), "--max-steps", "3",
-                 "--surfel-steps", "20", "--refine", "10", "--rgb", "0.5"])
+                 "--surfel-steps", "20", "--refine", "10", "--rgb", "0.5", "--numerics"])
     assert code in (0, 1)
     fit = json.loads((out / "fit.json").read_text())
     assert {"params", "std", "loss", "seconds", "iterations"} <= set(fit)
+    assert set(fit["numerics"]) == set(fit["params"])  # --numerics: each parameter's moves, in the report too
     assert "mu" in fit["params"] and "velocity" in fit["params"]
     assert (out / "overlay.mp4").stat().st_size > 0
     report = (out / "report.md").read_text()
     assert "Silhouette IoU over time" in report and "first-frame refinement (masks and RGB" in report
+    assert "| parameter | estimate | σ | dt/2 move | transfer move |" in report
     # the cameras' check ran on the six views and found them consistent
     assert "## Cameras" in report and not any(line.endswith("flagged |") for line in report.splitlines())
     assert "miscalibrated" not in report
@@ -551,9 +553,10 @@ def test_a_failing_fit_leaves_no_output(dataset, tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline, "identify_material", boom)
     with pytest.raises(SimulationError):
-        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2, refine_velocity=True)
+        pipeline.identify(dataset[0], "newtonian", tmp_path / "out", surfel_steps=2, refine_velocity=True,
+                          numerics=True)
     assert list(tmp_path.iterdir()) == []  # neither the output nor the staging folder
-    assert asked["refine_velocity"] is True
+    assert asked["refine_velocity"] is True and asked["numerics"] is True
 
 
 @pytest.mark.parametrize("recalibrate", [False, True])

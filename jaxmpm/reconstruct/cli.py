@@ -37,6 +37,9 @@ def add_identify_parser(sub, func) -> None:
                    help="refit the initial velocity with the material after the pre-contact stage: yes (the flag "
                         "alone), no (keep the pre-contact estimate), auto (default: no, unless the masks' areas jump "
                         "from frame to frame by more than 10 %%)")
+    p.add_argument("--numerics", action="store_true",
+                   help="after the fit, how far a refit at dt/2 and one with the other transfer (APIC / the FLIP "
+                        "blend) move each parameter: its numerical error, which the std does not include")
     p.add_argument("--recalibrate-views", action="store_true",
                    help="move the principal point of every view whose masks sit 1 px or more off the other views' "
                         "visual hull by that offset (default: only warn; the check runs on 3 views or more)")
@@ -80,6 +83,7 @@ def run_identify(args) -> int:
                        collider=args.collider, max_steps=args.max_steps, num_pixels=args.pixels,
                        surfel_steps=args.surfel_steps, refine=args.refine, rgb=args.rgb,
                        collider_rgb=args.collider_rgb, refine_velocity=REFINE_VELOCITY[args.refine_velocity],
+                       numerics=args.numerics,
                        recalibrate_views=args.recalibrate_views, video=not args.no_video,
                        stage=stage, progress=progress, warn=warn)
     finally:

@@ -452,7 +452,7 @@ def mask_area_noise(observation, dx: float) -> float:
 
 def identify_material(scene, observation, names, *, max_steps: int | None = None, num_pixels: int = 256,
                       renderer: str = RENDERER, rgb: float = 0.0, colors="auto", refine_velocity: bool | None = None,
-                      progress=None, log=None):
+                      numerics: bool = False, progress=None, log=None):
     """Fit ``names`` (material parameters and ``velocity``) to the silhouettes: the one call
     of :func:`jaxmpm.fit` in this package (PAC-NeRF's stages: the velocity from the
     pre-contact frames, then the material, each log10 parameter first scanned over
@@ -478,7 +478,10 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
     0.0003 → 0.036 decades), while an error in the held velocity is absorbed by the material
     (on blurred views μ 0.15 → 0.015 refitted), and with borders that move 1–2 px from frame
     to frame the pre-contact frames put it 0.24 m/s off (the jittered bunny, μ 0.20 held,
-    0.096 refitted; docs/identify.md §4). A note says when it is refitted for that reason."""
+    0.096 refitted; docs/identify.md §4). A note says when it is refitted for that reason.
+
+    ``numerics``: also refit the result at dt/2 and with the other transfer
+    (:attr:`jaxmpm.FitConfig.numerics`): the parameters' numerical error."""
     from ..fit import SCAN_DECADES, FitConfig, fit
 
     _check_rgb_weight(rgb, observation.images)
@@ -493,7 +496,7 @@ def identify_material(scene, observation, names, *, max_steps: int | None = None
                 log(note)
     config = FitConfig(max_steps=max_steps, num_pixels=num_pixels, renderer=renderer, scan=SCAN_DECADES,
                        weights={"silhouette": 1.0, "rgb": float(rgb)}, colors=colors,
-                       refine_velocity=bool(refine_velocity))
+                       refine_velocity=bool(refine_velocity), numerics=numerics)
     result = fit(scene.model, scene.params, observation, names, config, progress=progress, log=log)
     if note is not None:
         result.notes.insert(0, note)
@@ -610,15 +613,19 @@ def identify_warnings(result, recon: Reconstruction, dx: float, offsets: ViewOff
 def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, times: np.ndarray, material: str,
                  warnings: list[str] | None = None, offsets: ViewOffsets | None = None,
                  recalibrated_views: bool = False) -> None:
-    """``report.md``: parameters ± σ, IoU over time per view, the cameras' consistency check,
-    reconstruction quality."""
+    """``report.md``: parameters ± σ (and, with the fit's numerics check, the moves of its
+    refits at dt/2 and with the other transfer), IoU over time per view, the cameras'
+    consistency check, reconstruction quality."""
     lines = [f"# identify: {material}", ""]
     for w in warnings or []:
         lines += [f"> **Warning**: {w}.", ""]
-    lines += ["## Parameters", "", "| parameter | estimate | σ |", "|---|---|---|"]
+    checks = ("dt", "transfer") if result.numerics else ()
+    lines += ["## Parameters", "", "| parameter | estimate | σ |" + " dt/2 move | transfer move |" * bool(checks),
+              "|---|---|---|" + "---|---|" * bool(checks)]
     for name, value in result.values.items():
-        std = result.std.get(name)
-        lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |")
+        std, moves = result.std.get(name), result.numerics.get(name, {})
+        lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |"
+                     + "".join(f" {format_value(moves.get(c))} |" for c in checks))
     lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
               "## Silhouette IoU over time (observed vs simulated)", "",
               "![IoU per view over time](iou.png)", "",
@@ -725,6 +732,7 @@ def identify(
     rgb: float = 0.0,
     collider_rgb: float = 0.0,
     refine_velocity: bool | None = None,
+    numerics: bool = False,
     recalibrate_views: bool = False,
     video: bool = True,
     stage: Callable[[str], None] | None = None,
@@ -743,8 +751,8 @@ def identify(
         params: parameter names (default: the material's, plus ``velocity``).
         hint: ``scene_hint.toml`` path or dict (default ``folder/scene_hint.toml``).
         tolerance, collider, surfel_steps, refine, collider_rgb: see :func:`reconstruct`.
-        max_steps, num_pixels, rgb, refine_velocity: of the fit (:func:`identify_material`; with ``refine``
-            and RGB the particles' fitted colours are the RGB term's).
+        max_steps, num_pixels, rgb, refine_velocity, numerics: of the fit (:func:`identify_material`; with
+            ``refine`` and RGB the particles' fitted colours are the RGB term's).
         recalibrate_views: move the principal point of every view that the cameras' check
             (:func:`jaxmpm.reconstruct.calibration.view_offsets`, run before anything else on 3
             views or more) flags by its offset, before the reconstruction; otherwise a flagged
@@ -789,7 +797,8 @@ def identify(
         say("fit")
         colors = "auto" if recon.refinement is None or recon.refinement.colors is None else recon.refinement.colors
         result = identify_material(scene, dataset.observation, names, max_steps=max_steps, num_pixels=num_pixels,
-                                   rgb=rgb, colors=colors, refine_velocity=refine_velocity, progress=progress)
+                                   rgb=rgb, colors=colors, refine_velocity=refine_velocity, numerics=numerics,
+                                   progress=progress)
         (staging / "fit.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
         say("evaluate")
         evaluation_notes: list[str] = []
