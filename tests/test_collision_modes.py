@@ -162,7 +162,7 @@ def _one_collider_scene(collision: str, kind: str, contact: str, friction: float
     }
 
 
-@pytest.mark.parametrize("dim, substeps", [(2, 80), (3, 20)])
+@pytest.mark.parametrize("dim, substeps", [(2, 80), pytest.param(3, 20, marks=pytest.mark.slow)])  # 3D: the same code
 def test_a_flip_blend_rests_an_elastic_block_on_a_cpic_box_as_apic_does(dim, substeps):
     """``flip`` (``Model.flip``) with a CPIC collider: an elastic block (E = 100 kPa, dx = 5 cm)
     dropped 4 cells onto a slip box comes to rest on it as with APIC alone, over 0.6 s: no NaN,

@@ -467,7 +467,7 @@ def test_a_water_column_collapses_alike_in_float32_and_float64():
 
 
 @pytest.mark.x64
-@pytest.mark.parametrize("dim, collision", [(2, "cpic"), (2, "grid"), (2, "particles"), (3, "cpic")])
+@pytest.mark.parametrize("dim, collision", [(2, "cpic"), (2, "grid"), (2, "particles"), slow(3, "cpic")])
 def test_sand_lands_on_a_box_alike_in_float32_and_float64(dim, collision):
     """A sand block dropped onto a box collider (friction contact, a slip floor below) follows
     the same path in both precisions in every collision mode: nothing decides on rounding.
