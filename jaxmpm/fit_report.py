@@ -31,6 +31,21 @@ def aligned(rows: list[tuple[str, ...]], rule: bool = False) -> list[str]:
     return lines
 
 
+#: The numerics check's moves as table columns: ``(FitResult.numerics key, header)``.
+NUMERICS_COLUMNS = (("dt", "dt/2 move"), ("transfer", "transfer move"))
+
+
+def numerics_columns(result) -> tuple[tuple[str, str], ...]:
+    """:data:`NUMERICS_COLUMNS` where the fit ``result`` ran the numerics check, else none."""
+    return NUMERICS_COLUMNS if result.numerics else ()
+
+
+def numerics_cells(result, name: str) -> tuple[str, ...]:
+    """Parameter ``name``'s cells of :func:`numerics_columns`."""
+    moves = result.numerics.get(name, {})
+    return tuple(format_value(moves.get(key)) for key, _ in numerics_columns(result))
+
+
 def format_table(result, truth: dict | None = None) -> str:
     """The parameters of a :class:`~jaxmpm.fit.FitResult` as an aligned text table.
 
@@ -39,13 +54,11 @@ def format_table(result, truth: dict | None = None) -> str:
     with ``truth`` ({name: value}) also the truth and the error (``|dlog10|`` for log10-fitted
     parameters, else ``|d|`` in the parameter's unit).
     """
-    checks = ("dt", "transfer") if result.numerics else ()
-    rows = [("parameter", "initial", "estimate", "std") + tuple(f"{c} move" for c in ("dt/2", "transfer")[:len(checks)])
+    rows = [("parameter", "initial", "estimate", "std") + tuple(header for _, header in numerics_columns(result))
             + (("truth", "error") if truth else ())]
     for name, value in result.values.items():
-        moves = result.numerics.get(name, {})
         row = (name, format_value(result.initial.get(name)), format_value(value), format_value(result.std.get(name)))
-        row += tuple(format_value(moves.get(c)) for c in checks)
+        row += numerics_cells(result, name)
         if truth:
             row += (format_value(truth[name]), _error_text(name, value, truth[name]))
         rows.append(row)

@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import ObservationError
-from ..fit_report import format_value
+from ..fit_report import format_value, numerics_cells, numerics_columns
 from ..identify.residuals import frames_needed, observation_cameras
 from ..render import tile_views
 from .calibration import MIN_IOU_GAIN, ViewOffsets, check_cameras
@@ -619,13 +619,11 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
     lines = [f"# identify: {material}", ""]
     for w in warnings or []:
         lines += [f"> **Warning**: {w}.", ""]
-    checks = ("dt", "transfer") if result.numerics else ()
-    lines += ["## Parameters", "", "| parameter | estimate | σ |" + " dt/2 move | transfer move |" * bool(checks),
-              "|---|---|---|" + "---|---|" * bool(checks)]
+    header = ("parameter", "estimate", "σ") + tuple(h for _, h in numerics_columns(result))
+    lines += ["## Parameters", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for name, value in result.values.items():
-        std, moves = result.std.get(name), result.numerics.get(name, {})
-        lines.append(f"| {name} | {format_value(value)} | {format_value(std)} |"
-                     + "".join(f" {format_value(moves.get(c))} |" for c in checks))
+        cells = (name, format_value(value), format_value(result.std.get(name))) + numerics_cells(result, name)
+        lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
               "## Silhouette IoU over time (observed vs simulated)", "",
               "![IoU per view over time](iou.png)", "",
