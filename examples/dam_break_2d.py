@@ -299,6 +299,9 @@ def main(argv=None) -> int:
                     help="extension ids to consider (default: those physically possible here; 'all' for every one)")
     ap.add_argument("--fit", default="", help="base parameters to fit, comma-separated (default: none, the water's own "
                     "viscosity; 'mu' fits the viscosity as part of the base model)")
+    ap.add_argument("--numerics", action="store_true",
+                    help="with --fit: how far a refit at dt/2 and one with the other transfer move the fitted base "
+                         "parameters (docs/discover.md)")
     ap.add_argument("--summary-only", action="store_true",
                     help="only redo the dimensionless front plot and summary.json from an existing report.json")
     ap.add_argument("--no-resolution-check", action="store_true", help="skip the base model at twice the resolution")
@@ -321,7 +324,8 @@ def main(argv=None) -> int:
     exts = None if args.extensions == "all" else args.extensions.split(",")
     result = discover(
         seqs, names=[n for n in args.fit.split(",") if n], extensions=exts, holdout=0.0, holdout_sequences=[args.holdout], top=2 if args.quick else 3,
-        max_extensions=2, progress=lambda s: print(f"[{time.perf_counter() - start:7.1f}s] {s}", file=sys.stderr),
+        max_extensions=2, numerics=args.numerics,
+        progress=lambda s: print(f"[{time.perf_counter() - start:7.1f}s] {s}", file=sys.stderr),
     )
     note = ("Measured surge-front positions x_front(t) of three water columns of width a and height 2a: "
             + "; ".join(f"`{k}` = {SERIES[k][2]} ({len(load_front(k)[0])} points)" for k in SERIES)

@@ -259,8 +259,8 @@ def cmd_discover(args) -> int:
     result = discover(
         scene.model, scene.params, obs, names=names, extensions=exts, holdout=args.holdout, top=args.top,
         min_gain=args.min_gain, alpha=args.alpha, max_extensions=args.max_extensions, max_iter=args.max_iter,
-        convergence=not args.no_convergence, noise_floor=args.noise, num_pixels=args.pixels, prune=not args.refit_all,
-        progress=say,
+        convergence=not args.no_convergence, numerics=args.numerics, noise_floor=args.noise, num_pixels=args.pixels,
+        prune=not args.refit_all, progress=say,
     )
     files = write_report(result, out, title=f"Discrepancy report: {Path(args.scene).name} vs {Path(args.observations).name}")
     if args.profile:
@@ -395,6 +395,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-iter", type=int, default=25, help="Levenberg-Marquardt iterations per fit (default 25)")
     p.add_argument("--no-convergence", action="store_true",
                    help="skip the numerical checks (the fitted base model at dt/2 and with the other transfer)")
+    p.add_argument("--numerics", action="store_true",
+                   help="also refit the base model at dt/2 and with the other transfer (a few iterations each, from "
+                        "its fit): how far each base parameter moves, its numerical error, which the std does not "
+                        "include")
     p.add_argument("--noise", type=float, default=None, help="known observation noise (RMS, data units)")
     p.add_argument("--pixels", type=int, default=256, help="pixels per view and frame for silhouettes")
     p.add_argument("--quiet", action="store_true", help="no progress output")

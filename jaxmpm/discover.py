@@ -56,7 +56,8 @@ from .identify.residuals import Frames, image_terms, make_fit_renderer, probe_te
 from .identify.solvers import levenberg_marquardt
 from .identify.uncertainty import gauss_newton_covariance, physical_std
 from .model import Model, Params
-from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name, transfer_runs
+from .numerics import (CHECK_FLIP, NUMERICS_REFIT_STEPS, Numerics, Refit, format_std, move_table, numerics_notes,
+                       other_flip, parameter_moves, transfer_name, transfer_runs)
 from .observe import Observation
 from .step import health_message, simulate, unhealthy
 
@@ -506,8 +507,9 @@ class _Problem:
             self._remembered = [(key, r.copy()), *self._remembered][:self.REMEMBERED]
         return r
 
-    def jacobian(self, theta, cols) -> np.ndarray:
-        """Columns ``cols`` of the residual Jacobian ``(M, len(cols))``: per sequence, the
+    def jacobian(self, theta, cols, numerics: Numerics = Numerics()) -> np.ndarray:
+        """Columns ``cols`` of the residual Jacobian ``(M, len(cols))`` (with the models'
+        numerics changed by ``numerics``): per sequence, the
         columns its parameters depend on, in order of the parameter vector (so grouped by
         extension), up to :data:`JVP_BATCH` tangents to a rollout sharing one primal (chunks
         of one size, the last padded with zero tangents). Each chunk's rollout carries only
@@ -550,7 +552,7 @@ class _Problem:
                 batch = batch + [jax.tree_util.tree_map(jnp.zeros_like, batch[0])] * (size - len(batch))  # padding
                 stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *batch)
                 clock = _time.perf_counter()
-                frames, d_frames = _rollout_jvps(sd.model, p, stacked, sd.frames)
+                frames, d_frames = _rollout_jvps(numerics.apply(sd.model), p, stacked, sd.frames)
                 dt0 = jax.vmap(self._t0)(stacked)
                 t0 = self._t0(p)
                 dr = np.concatenate([np.asarray(_obs_jvps(o, frames, t0, d_frames, dt0), float)
@@ -559,7 +561,7 @@ class _Problem:
                 self.costs.jvp_rollouts += 1
                 self.costs.tangents += size
                 self.costs.jvp_s += seconds
-                self.costs.call(("jvp", i, size, active), seconds)
+                self.costs.call(("jvp", i, size, numerics, active), seconds)
                 J[rows, chunk] = dr[:len(chunk)].T
         J[self.groups.entry_group < 0] = 0.0
         return J
@@ -586,7 +588,8 @@ class _Fit:
     ``r (M,)`` (held-out entries included), the training loss, trial points spent, the free
     parameters' names, the training loss after each accepted step, the covariance, and the
     solver's Jacobian at ``theta`` when it has it (``(M, len(free))``, training rows; the
-    covariance reuses it instead of spending ``len(free)`` JVP rollouts again)."""
+    covariance reuses it instead of spending ``len(free)`` JVP rollouts again), and whether the
+    solver converged (rather than stopping on its iteration budget)."""
 
     theta: np.ndarray
     r: np.ndarray
@@ -596,6 +599,7 @@ class _Fit:
     history: list
     cov: np.ndarray | None = None
     jacobian: np.ndarray | None = None
+    converged: bool = False
 
 
 #: Tolerances of the Levenberg–Marquardt's Cauchy test (those of :class:`jaxmpm.FitConfig`), and
@@ -652,10 +656,12 @@ def _train_groups(problem: _Problem, train_entries) -> int:
     return max(int(np.unique(g[(g >= 0) & np.asarray(train_entries, bool)]).size), 1)
 
 
-def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, progress=None) -> _Fit:
+def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, progress=None,
+        numerics: Numerics = Numerics()) -> _Fit:
     """The identification core's Levenberg–Marquardt, within the parameters' bounds, on the
     training residuals (held-out entries weigh 0; sequences held out entirely are not
-    simulated); all residuals are then evaluated once at the estimate. An accepted step that
+    simulated) of the models with ``numerics``; all residuals are then evaluated once at the
+    estimate. An accepted step that
     lowers the loss by less than ``max(_FTOL, STATISTIC_RESOLUTION / n)`` (relative; ``n``
     training groups) ends it.
 
@@ -672,11 +678,11 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
         th[cols] = sub
         return th
 
-    iterations, history, jac = 0, [], None
+    iterations, history, jac, converged = 0, [], None, True
     if len(cols):
         out = levenberg_marquardt(
-            lambda sub: w * problem.residuals(full(sub), training_only=True), theta[cols],
-            jacobian=lambda sub: w[:, None] * problem.jacobian(full(sub), cols),
+            lambda sub: w * problem.residuals(full(sub), numerics, training_only=True), theta[cols],
+            jacobian=lambda sub: w[:, None] * problem.jacobian(full(sub), cols, numerics),
             lower=problem.lower[cols], upper=problem.upper[cols], scaled=True,
             ftol=max(_FTOL, STATISTIC_RESOLUTION / _train_groups(problem, train_entries)),
             max_steps=max_iter, rtol=_RTOL, atol=_ATOL, progress=progress)
@@ -684,10 +690,10 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
         problem.costs.iterations += out.iterations
         problem.costs.rejected_steps += int(out.timing.get("rejected_steps", 0))
         if not out.unhealthy_start:
-            theta, iterations, history = full(out.y), out.iterations, out.losses
+            theta, iterations, history, converged = full(out.y), out.iterations, out.losses, bool(out.converged)
             at_y = out.jacobian[1] if out.jacobian is not None else None
             jac = None if at_y is None else (np.asarray(at_y[0], float), np.asarray(at_y[1], float))
-    r = problem.residuals(theta)
+    r = problem.residuals(theta, numerics)
     loss = float(np.sum(np.where(w > 0, w * r, 0.0) ** 2))  # held-out entries may be NaN (an unstable forecast)
     if not np.isfinite(loss):
         why = problem.health(theta) or "the residuals are NaN"
@@ -698,7 +704,31 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
         here = np.where(w > 0, w * r, 0.0)
         jac = J_solver if np.allclose(r_solver, here, rtol=1e-5, atol=1e-6 * max(np.abs(here).max(), 1e-300)) else None
     return _Fit(theta=theta, r=r, loss=loss, iterations=iterations, free=list(free_names),
-                history=history or [loss], jacobian=jac)
+                history=history or [loss], jacobian=jac, converged=converged)
+
+
+def _moved(v) -> str:
+    return "none (unhealthy)" if v is None else format_std(v)
+
+
+def _parameter_moves(problem: _Problem, fit: _Fit, train_entries) -> dict:
+    """:func:`jaxmpm.numerics.parameter_moves` of ``fit``'s free parameters: the fit refitted
+    from its estimate at dt/2 and with the other transfer, by at most
+    :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each."""
+    def by_name(theta) -> dict:
+        return {n: np.asarray(theta[problem.slices[n]]).reshape(problem.entry(n).shape) for n in fit.free}
+
+    def refit(numerics: Numerics) -> Refit | None:
+        try:
+            run = _lm(problem, fit.theta, fit.free, train_entries, max_iter=NUMERICS_REFIT_STEPS, numerics=numerics)
+        except JaxmpmError:  # unhealthy at the estimate with these numerics
+            return None
+        return Refit(y=by_name(run.theta), losses=(float(run.history[0]), float(min(run.history))),
+                     iterations=run.iterations, converged=run.converged)
+
+    model = problem.seqs[0].model
+    return parameter_moves(refit, by_name(fit.theta), lambda n, y: np.asarray(problem.physical(n, jnp.asarray(y, _F()))),
+                           substeps=model.substeps, flip=model.flip)
 
 
 def _covariance(problem: _Problem, fit: _Fit, train_entries) -> np.ndarray:
@@ -788,8 +818,13 @@ def _plain(v):
 class Discovery:
     """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``).
 
+    With ``discover(numerics=True)``, ``numerics`` holds the base parameters' moves by name
+    (``{"dt": move, "transfer": move}``, physical units, as :attr:`jaxmpm.FitResult.numerics`),
+    ``numerics_check`` the refits' records (:func:`jaxmpm.numerics.parameter_moves`) and
+    ``notes`` a note for each parameter whose error is numerical more than statistical.
+
     ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
-    dt/2 check, transfer check, each step's screen and each refit): wall seconds; forward
+    dt/2 check, transfer check, numerics check, each step's screen and each refit): wall seconds; forward
     rollouts and their seconds; forward-mode Jacobian rollouts, the tangents they carried and
     their seconds; Levenberg–Marquardt runs, iterations and rejected trial steps; compilation
     (estimated) and host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a
@@ -816,6 +851,9 @@ class Discovery:
     seconds: float
     not_applicable: dict
     timing: dict = field(default_factory=dict)
+    numerics: dict = field(default_factory=dict)
+    numerics_check: dict | None = None
+    notes: list = field(default_factory=list)
     # internals for the report
     problem: Any = field(default=None, repr=False)
     base_theta: Any = field(default=None, repr=False)
@@ -865,6 +903,10 @@ class Discovery:
                     for c in self.candidates
                 ],
                 "convergence": self.convergence,
+                "numerics": {k: {c: None if v is None else _plain(v) for c, v in d.items()}
+                             for k, d in self.numerics.items()},
+                "numerics_check": self.numerics_check,
+                "notes": list(self.notes),
                 "not_applicable": self.not_applicable,
                 "settings": self.settings,
                 "seconds": float(self.seconds),
@@ -1020,6 +1062,7 @@ def discover(
     max_extensions: int = 3,
     max_iter: int = 25,
     convergence: bool = True,
+    numerics: bool = False,
     noise_floor: float | None = None,
     num_pixels: int = 256,
     prune: bool = True,
@@ -1044,6 +1087,12 @@ def discover(
             change is the numerical error an improvement must exceed) and with the other
             transfer (:class:`Numerics`; its change is reported, and the verdict cautions
             against an extension whose improvement is within it: :func:`transfer_caution`).
+        numerics: the base fit's numerical error in parameter space: how far a short refit
+            at dt/2 and one with the other transfer move each base parameter
+            (:func:`jaxmpm.numerics.parameter_moves`, at most
+            :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each; the result's
+            ``numerics`` and ``numerics_check``), with a note for each parameter moved by more
+            than :data:`~jaxmpm.numerics.NUMERICS_NOTE_STDS` of its std (``notes``).
         noise_floor: observation noise (RMS, in the data's units) if known: a base model whose
             held-out error is within 1.5 times it has nothing to explain.
         num_pixels: pixels per view and frame for silhouettes.
@@ -1135,6 +1184,21 @@ def discover(
         if conv["transfer_error"] is not None:
             say(f"  transfer change{' at dt/2' if factor == 2 else ''}: {conv['transfer_error']:.3g} "
                 f"({100 * conv['transfer_fraction']:.1f} % of the base error)")
+
+    # ---- the base parameters' numerical error
+    moves, check, notes = {}, None, []
+    if numerics and problem.base_names():
+        say("numerics check: the base fit refitted at dt/2 and with the other transfer")
+        with phase("numerics check"):
+            check = _parameter_moves(problem, base, entry_train)
+        moves = move_table(check, problem.base_names())
+        for n, m in moves.items():
+            say(f"  {n}: dt/2 move {_moved(m['dt'])}, transfer move {_moved(m['transfer'])} "
+                f"(std {format_std(base_std[n])})")
+        notes = numerics_notes(check, problem.base_names(), base_std, refit="rerun discover",
+                               made_by_model=all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs))
+        for note in notes:
+            say(f"  note: {note}")
 
     # ---- 3-4. screen, refit, select (greedy)
     current = base
@@ -1301,7 +1365,7 @@ def discover(
     order = sorted(all_cands, key=lambda c: (c.step, -c.score))
     settings = dict(names=names, extensions=requested, holdout=holdout, holdout_sequences=list(holdout_sequences or []),
                     top=top, min_gain=min_gain, alpha=alpha, max_extensions=max_extensions, max_iter=max_iter, prune=prune,
-                    convergence=convergence, noise_floor=noise_floor, train_groups=n_train,
+                    convergence=convergence, numerics=numerics, noise_floor=noise_floor, train_groups=n_train,
                     heldout_groups=int(heldout.sum()), sequences=[s.name for s in sequences])
     for c in order:  # the workflow's working state is not part of the result
         c.lin_step, c.fit, c.cov = None, None, None
@@ -1322,6 +1386,9 @@ def discover(
         base_std=base_std,
         extended_values={n: values[n] for n in current_names},
         convergence=conv,
+        numerics=moves,
+        numerics_check=check,
+        notes=notes,
         verdict=verdict,
         settings=settings,
         seconds=seconds,

@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import extensions as X
-from .numerics import transfer_name
-from .fit_report import aligned
+from .fit_report import aligned, numerics_cells, numerics_columns
+from .numerics import NUMERICS_REFIT_STEPS, transfer_name
 
 PHASES = ("free flight", "impact", "post-contact", "settling")
 
@@ -643,9 +643,18 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
           "beside it and is not part of the rule).", ""]
     L += ["## The base model", ""]
     if d.base_values:
-        L += ["| parameter | fitted value |", "|---|---|"]
+        columns = numerics_columns(d)
+        L += ["| parameter | fitted value |" + "".join(f" {header} |" for _, header in columns),
+              "|---|---|" + "---|" * len(columns)]
         for k, v in d.base_values.items():
-            L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |")
+            L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |" + "".join(f" {c} |" for c in numerics_cells(d, k)))
+        if columns:
+            L += ["", "The moves are where a short refit of the base model (at most "
+                  f"{NUMERICS_REFIT_STEPS} iterations) ends at dt/2 and with the other transfer, less the fitted "
+                  "value: the parameters' numerical error, which the standard deviation does not include "
+                  "(docs/fitting.md, \"Numerical error of the parameters\")."]
+        if d.notes:
+            L += [""] + [f"* Note: {note}" for note in d.notes]
     else:
         L.append("No parameter fitted: the base model is run as given.")
     L.append("")

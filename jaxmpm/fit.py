@@ -80,7 +80,8 @@ from .identify.residuals import Objective, Residuals, build_objective, frames_ne
 from .identify.solvers import SolverOutcome, adam, bfgs, levenberg_marquardt, loss_function, residuals_and_jacobian
 from .identify.uncertainty import gauss_newton_covariance, physical_std, resolved_std
 from .model import CPIC_RESTITUTION_NOTE, Model, Params, weak_restitution
-from .numerics import CHECK_FLIP, Numerics, other_flip, transfer_name, transfer_runs
+from .numerics import (NUMERICS_REFIT_STEPS, Numerics, Refit, format_std, move_table, numerics_notes,
+                       parameter_moves)
 from .observe import Observation, check_observation_matches, check_scene_compatible
 from .parameters import Log10
 
@@ -508,10 +509,6 @@ def _plain(v):
     return v.item() if v.ndim == 0 else v.tolist()
 
 
-def _fmt_std(v) -> str:
-    return np.array2string(np.asarray(v, float), precision=3, floatmode="maxprec") if np.ndim(v) else f"{float(v):.3g}"
-
-
 # --------------------------------------------------------------------------- the fit
 
 
@@ -757,7 +754,7 @@ def fit(
                                             "resolved": n not in unresolved} for n in rough}
                 notes.append(
                     f"stage {si + 1}: the loss is rough below the scale of the Gauss-Newton std for "
-                    + ", ".join(f"{n} (std {_fmt_std(stage_std[n])} instead of {_fmt_std(statistical[n])}"
+                    + ", ".join(f"{n} (std {format_std(stage_std[n])} instead of {format_std(statistical[n])}"
                                 f"{'; not resolved up to a move of 1 + |y|' if n in unresolved else ''})" for n in rough)
                     + ": moves below that change the loss by jumps, not as its derivative predicts")
                 say(notes[-1])
@@ -769,8 +766,7 @@ def fit(
                 stage_residuals, lambda other, until=stage.until: build_objective(other, observation, until=until,
                                                                                  **objective_options),
                 {n: y_all[n] for n in snames}, rtol=c.rtol, atol=c.atol)
-            numerics.update({n: {k: None if check[k]["shift"] is None else check[k]["shift"][n]
-                                 for k in ("dt", "transfer")} for n in final_names})
+            numerics.update(move_table(check, final_names))
             moved = numerics_notes(check, final_names, std, made_by_model=observation.made_by(model))
             for note in moved:
                 notes.append(f"stage {si + 1}: {note}")
@@ -1140,22 +1136,12 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
     return physical_std(list(y), y, as_dict(std)), gauss_newton, unresolved
 
 
-#: The Levenberg–Marquardt iterations of each of :func:`numerics_check`'s refits, from the
-#: fitted point (one Gauss–Newton step underestimated a move 5x where the loss is far from
-#: quadratic: a viscosity near 0 with APIC, docs/fitting.md).
-NUMERICS_REFIT_STEPS = 4
-
-
 def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict, *,
                    rtol: float, atol: float) -> dict:
-    """How the fitted variables ``y`` of one stage depend on the numerics: the stage refitted
-    from ``y`` with dt halved and with the other transfer (:class:`jaxmpm.numerics.Numerics`),
-    each by at most :data:`NUMERICS_REFIT_STEPS` Levenberg–Marquardt iterations (the fit's
-    solver, tolerances ``rtol`` and ``atol``): a short refit, warm from a converged fit.
-
-    The dt/2 move estimates the time discretisation's error of the parameters (about the
-    whole of it for a first-order scheme); the transfer move, part of the spatial one, which
-    dt/2 cannot see (at least one transfer is at least half of it from the converged answer).
+    """How the fitted variables ``y`` of one stage depend on the numerics
+    (:func:`jaxmpm.numerics.parameter_moves`): the stage refitted from ``y`` with dt halved and
+    with the other transfer, each by at most :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS`
+    Levenberg–Marquardt iterations of the fit's solver (tolerances ``rtol`` and ``atol``).
 
     Arguments:
         residuals: the stage's residuals (its model is the one fitted).
@@ -1164,71 +1150,19 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
         y: the fitted variables (optimisation space) by name.
 
     Returns:
-        ``{"dt": check, "transfer": check}``, each check ``{"substeps", "loss" ([at y, after
-        the refit]), "iterations", "converged", "shift_y" and "shift" (by name: the move in
-        optimisation space, e.g. decades, and in physical units)}``; the transfer check also
-        has ``flip`` and ``flip_checked``. Where the swapped transfer's rollout is unhealthy
-        at dt (the blend may need a smaller dt), both transfers are compared at dt/2 (its
-        ``substeps`` say so: the move is then between the two refits at dt/2); where a
-        rollout is unhealthy at ``y``, its check's entries are None.
+        :func:`~jaxmpm.numerics.parameter_moves`' ``{"dt": check, "transfer": check}``.
     """
     model = residuals.program.model
 
-    def refit(numerics: Numerics) -> SolverOutcome:
+    def refit(numerics: Numerics) -> Refit | None:
         other = StageResiduals(objective_for(numerics.apply(model)).program, residuals.base, residuals.names)
-        return levenberg_marquardt(other, y, max_steps=NUMERICS_REFIT_STEPS, rtol=rtol, atol=atol, warm=True)
-
-    def moves(start: dict, run: SolverOutcome, **which) -> dict:
+        run = levenberg_marquardt(other, y, max_steps=NUMERICS_REFIT_STEPS, rtol=rtol, atol=atol, warm=True)
         if run.unhealthy_start:
-            return {**which, "loss": None, "iterations": None, "converged": None, "shift_y": None, "shift": None}
-        end = run.y
-        return {**which, "loss": [float(run.losses[0]), float(min(run.losses))], "iterations": run.iterations,
-                "converged": bool(run.converged),
-                "shift_y": {n: _plain(end[n] - start[n]) for n in y},
-                "shift": {n: _plain(from_unconstrained(n, end[n]) - from_unconstrained(n, start[n])) for n in y}}
+            return None
+        return Refit(y=run.y, losses=(float(run.losses[0]), float(min(run.losses))), iterations=run.iterations,
+                     converged=bool(run.converged))
 
-    half = refit(Numerics(substeps_factor=2))
-    factor, start, other = transfer_runs(refit, y, half.y, lambda run: not run.unhealthy_start)
-    return {
-        "dt": moves(y, half, substeps=2 * model.substeps),
-        "transfer": moves(start, other, substeps=factor * model.substeps, flip=model.flip,
-                          flip_checked=other_flip(model.flip)),
-    }
-
-
-#: :func:`numerics_notes` names a parameter that a numerics check moves by more than this many
-#: of its standard deviations.
-NUMERICS_NOTE_STDS = 2.0
-
-
-def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool) -> list[str]:
-    """One note per name of ``names`` that :func:`numerics_check`'s ``check`` moves by more
-    than :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units):
-    its error is then numerical more than statistical. None without a std, and none where
-    the data may have been made by this model on its grid (``made_by_model``:
-    :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's."""
-    if made_by_model:
-        return []
-    transfer = check["transfer"]
-    what = {"dt": ("at dt/2", "fit with more substeps per frame"),
-            "transfer": (f"with {transfer_name(transfer['flip_checked'])} in place of {transfer_name(transfer['flip'])}"
-                         + (" (both at dt/2)" if transfer["substeps"] == check["dt"]["substeps"] else ""),
-                         f"fit with the scene key flip = {CHECK_FLIP:g} or at a finer dx" if transfer["flip"] == 0.0
-                         else "fit at a finer dx")}
-    notes = []
-    for n in names:
-        if n not in std:
-            continue
-        sd = np.asarray(std[n], float)
-        over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
-        over = [(k, move) for k, move in over if np.any(np.abs(move) > NUMERICS_NOTE_STDS * sd)]
-        if over:
-            told = "; ".join(f"{what[k][0]} by {_fmt_std(move)} ({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std)"
-                             for k, move in over)
-            notes.append(f"{n} would move {told} (a short refit; its std {_fmt_std(sd)}): its error is numerical "
-                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
-                         "(docs/fitting.md, 'Numerical error of the parameters')")
-    return notes
+    return parameter_moves(refit, y, from_unconstrained, substeps=model.substeps, flip=model.flip)
 
 
 def fit_scene(scene, observation: Observation, names: Sequence[str] | None = None, config: FitConfig = FitConfig(),

@@ -11,11 +11,14 @@ docs/fitting.md, "Numerical error of the parameters").
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, TypeVar
+from typing import Any, Callable, Sequence, TypeVar
+
+import numpy as np
 
 from .model import Model
 
-__all__ = ["CHECK_FLIP", "Numerics", "other_flip", "transfer_name", "transfer_runs"]
+__all__ = ["CHECK_FLIP", "NUMERICS_NOTE_STDS", "NUMERICS_REFIT_STEPS", "Numerics", "Refit", "format_std", "move_table",
+           "numerics_notes", "other_flip", "parameter_moves", "transfer_name", "transfer_runs"]
 
 Run = TypeVar("Run")
 Same = TypeVar("Same")
@@ -67,3 +70,117 @@ def transfer_runs(rerun: Callable[["Numerics"], Run], at_dt: Same, at_half: Same
         if healthy(other):
             break
     return factor, same, other
+
+
+#: The Levenberg–Marquardt iterations of each of :func:`parameter_moves`' refits, from the
+#: fitted point (one Gauss–Newton step underestimated a move 5x where the loss is far from
+#: quadratic: a viscosity near 0 with APIC, docs/fitting.md).
+NUMERICS_REFIT_STEPS = 4
+
+#: :func:`numerics_notes` names a parameter that a numerics check moves by more than this many
+#: of its standard deviations.
+NUMERICS_NOTE_STDS = 2.0
+
+
+@dataclass(frozen=True)
+class Refit:
+    """Where a short refit with other numerics ended.
+
+    Attributes:
+        y: the fitted variables by name (optimisation space: decades for log10 parameters).
+        losses: the loss where it started and the lowest it reached.
+        iterations: its Levenberg–Marquardt iterations.
+        converged: whether it stopped on its tolerances rather than on its iteration budget.
+    """
+
+    y: dict
+    losses: tuple[float, float]
+    iterations: int
+    converged: bool
+
+
+def _plain(v):
+    v = np.asarray(v, float)
+    return v.item() if v.ndim == 0 else v.tolist()
+
+
+def parameter_moves(refit: Callable[[Numerics], "Refit | None"], y: dict, physical: Callable[[str, Any], Any], *,
+                    substeps: int, flip: float) -> dict:
+    """How the fitted variables ``y`` (optimisation space, by name) depend on the numerics:
+    where a short refit from ``y`` ends with dt halved and where one with the other transfer
+    ends (:func:`transfer_runs`: at dt, or both transfers at dt/2 where the other one's run is
+    unhealthy at dt).
+
+    The dt/2 move estimates the time discretisation's error of the parameters (about the whole
+    of it for a first-order scheme); the transfer move, part of the spatial one, which dt/2
+    cannot see (at least one transfer is at least half of it from the converged answer).
+
+    Arguments:
+        refit: ``refit(numerics)``, the fit's problem with those numerics refitted from ``y``
+            by at most :data:`NUMERICS_REFIT_STEPS` iterations; None where its rollout is
+            unhealthy at ``y``. (The transfer move at dt/2 is between the two refits' ends.)
+        physical: ``physical(name, value)``, an optimisation variable's physical value.
+        substeps, flip: the fitted model's substeps per frame and FLIP blend.
+
+    Returns:
+        ``{"dt": check, "transfer": check}``, each check ``{"substeps", "loss" ([at its start,
+        after the refit]), "iterations", "converged", "shift_y" and "shift" (by name: the move
+        in optimisation space, e.g. decades, and in physical units)}``; the transfer check also
+        has ``flip`` and ``flip_checked``. Where a refit could not start, its entries are None.
+    """
+    def record(start: dict | None, run: Refit | None, **which) -> dict:
+        if start is None or run is None:
+            return {**which, "loss": None, "iterations": None, "converged": None, "shift_y": None, "shift": None}
+        return {**which, "loss": [float(run.losses[0]), float(run.losses[1])], "iterations": int(run.iterations),
+                "converged": bool(run.converged),
+                "shift_y": {n: _plain(np.asarray(run.y[n]) - np.asarray(start[n])) for n in y},
+                "shift": {n: _plain(np.asarray(physical(n, run.y[n])) - np.asarray(physical(n, start[n]))) for n in y}}
+
+    half = refit(Numerics(substeps_factor=2))
+    factor, start, other = transfer_runs(refit, y, None if half is None else half.y, lambda run: run is not None)
+    return {"dt": record(y, half, substeps=2 * substeps),
+            "transfer": record(start, other, substeps=factor * substeps, flip=flip, flip_checked=other_flip(flip))}
+
+
+def move_table(check: dict, names: Sequence[str]) -> dict:
+    """The moves of :func:`parameter_moves`' ``check`` by name, physical units: ``{name: {"dt":
+    move, "transfer": move}}`` (None where that refit could not start)."""
+    return {n: {k: None if check[k]["shift"] is None else check[k]["shift"][n] for k in ("dt", "transfer")}
+            for n in names}
+
+
+def format_std(v) -> str:
+    """A std or move for a note: 3 significant digits, arrays as lists."""
+    return np.array2string(np.asarray(v, float), precision=3, floatmode="maxprec") if np.ndim(v) else f"{float(v):.3g}"
+
+
+def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool, refit: str = "fit") -> list[str]:
+    """One note per name of ``names`` that :func:`parameter_moves`' ``check`` moves by more than
+    :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units): its
+    error is then numerical more than statistical. None without a std, and none where the data
+    may have been made by this model on its grid (``made_by_model``:
+    :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's.
+    ``refit`` names the command the note tells the user to rerun (``"fit"``, ``"rerun
+    discover"``)."""
+    if made_by_model:
+        return []
+    transfer = check["transfer"]
+    what = {"dt": ("at dt/2", f"{refit} with more substeps per frame"),
+            "transfer": (f"with {transfer_name(transfer['flip_checked'])} in place of {transfer_name(transfer['flip'])}"
+                         + (" (both at dt/2)" if transfer["substeps"] == check["dt"]["substeps"] else ""),
+                         f"{refit} with the scene key flip = {CHECK_FLIP:g} or at a finer dx" if transfer["flip"] == 0.0
+                         else f"{refit} at a finer dx")}
+    notes = []
+    for n in names:
+        if n not in std:
+            continue
+        sd = np.asarray(std[n], float)
+        over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
+        over = [(k, move) for k, move in over if np.any(np.abs(move) > NUMERICS_NOTE_STDS * sd)]
+        if over:
+            told = "; ".join(f"{what[k][0]} by {format_std(move)} "
+                             f"({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std)" for k, move in over)
+            notes.append(f"{n} would move {told} (a short refit; its std {format_std(sd)}): its error is numerical "
+                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
+                         "(docs/fitting.md, 'Numerical error of the parameters')")
+    return notes

@@ -87,7 +87,13 @@ def test_the_transfer_check_finds_data_made_by_the_other_transfer(healthy_at_dt,
     check) it forecasts them to within a fifth of that. The verdict claims no physics and says
     the prediction depends on the transfers; the report says how far they move it. Where the
     swapped run is unhealthy at dt (made so here), both transfers are compared at dt/2.
-    Measured: base held-out error 0.0355 m, 0.0064 m with APIC, change 0.0365 m."""
+    Measured: base held-out error 0.0355 m, 0.0064 m with APIC, change 0.0365 m.
+
+    The numerics check in parameter space (``numerics=True``): the base fit refitted with the
+    data's own transfer moves E most of the way to the truth, by more than two of its std,
+    hence a note; the report's base-model table has the moves. Measured: E 3,517 +- 62 Pa;
+    moves -392 at dt/2 and -531 with APIC (full refits: -392 and -531, to 2,986 Pa); where
+    APIC is compared at dt/2, -247 from the blend's refit there (to 2,878 Pa)."""
     D = importlib.import_module("jaxmpm.discover")
     from jaxmpm.discover_report import write_report
 
@@ -106,7 +112,7 @@ def test_the_transfer_check_finds_data_made_by_the_other_transfer(healthy_at_dt,
             return r * np.nan if numerics == D.Numerics(other_transfer=True) else r
 
         monkeypatch.setattr(D._Problem, "residuals", unhealthy_at_dt)
-    result = discover(m.with_flip(0.99), p, obs, top=2, max_extensions=1)
+    result = discover(m.with_flip(0.99), p, obs, top=2, max_extensions=1, numerics=True)
     c = result.convergence
     assert (c["flip"], c["flip_checked"], c["transfer_dt_factor"]) == (0.99, 0.0, 1.0 if healthy_at_dt else 0.5)
     assert not c["data_made_by_model"] and obs.made_by(m) and not obs.made_by(m.with_flip(0.99))
@@ -116,11 +122,23 @@ def test_the_transfer_check_finds_data_made_by_the_other_transfer(healthy_at_dt,
     assert c["transfer_error"] == pytest.approx(c["transfer_fraction"] * result.base_error)
     assert not result.discrepancy, result.verdict
     assert "depends on the transfers: APIC in place of the FLIP blend 0.99" in result.verdict
+    # the base parameters' numerical error: the refit with APIC (the data's transfer) moves E
+    # most of the way to the truth (at dt/2: from the blend's refit at dt/2), by more than 2 std
+    check, E, std = result.numerics_check, result.base_values["E"], result.base_std["E"]
+    assert check["dt"]["substeps"] == 40 and check["transfer"]["substeps"] == (20 if healthy_at_dt else 40)
+    moved = result.numerics["E"]
+    start = E if healthy_at_dt else E + moved["dt"]
+    assert abs(start + moved["transfer"] - 3e3) < 0.5 * abs(E - 3e3), (E, moved)
+    assert abs(moved["transfer"]) > 2 * std, (moved, std)
+    assert any(n.startswith("E would move") and "with APIC in place of the FLIP blend 0.99" in n for n in result.notes)
     write_report(result, tmp_path)
     text = (tmp_path / "report.md").read_text()
     assert f"moves the held-out prediction by {c['transfer_error']:.3g}" in text
     assert ("both at dt/2" in text) != healthy_at_dt
-    assert json.loads((tmp_path / "report.json").read_text())["details"]["convergence"]["flip_checked"] == 0.0
+    assert "| parameter | fitted value | dt/2 move | transfer move |" in text and "* Note: E would move" in text
+    details = json.loads((tmp_path / "report.json").read_text())["details"]
+    assert details["convergence"]["flip_checked"] == 0.0
+    assert details["numerics"]["E"]["transfer"] == pytest.approx(moved["transfer"])
 
 
 def test_the_verdict_cautions_against_an_extension_within_the_transfer_check():
@@ -261,11 +279,16 @@ def test_no_hidden_effect_reports_no_discrepancy_through_the_cli(tmp_path, capsy
     assert load_observation(obs_file).positions.shape == obs.positions.shape
     out = tmp_path / "report"
     code = main(["discover", str(scene_file), str(obs_file), "--out", str(out), "--top", "2", "--max-extensions", "1",
-                 "--no-convergence", "--profile", "--quiet"])
+                 "--no-convergence", "--numerics", "--profile", "--quiet"])
     assert code == 0
     printed = capsys.readouterr().out
     assert "Jacobian rollouts (tangents)" in printed and "step 1: screen" in printed  # --profile's table
+    assert "numerics check" in printed
     report = json.loads((out / "report.json").read_text())
+    # --numerics: the base parameters' moves; no note, since these are tracks of the model's own particles
+    numerics = report["details"]["numerics"]
+    assert set(numerics) == {"E", "nu"} and all(np.isfinite(v) for m in numerics.values() for v in m.values())
+    assert report["details"]["notes"] == [] and "| dt/2 move | transfer move |" in (out / "report.md").read_text()
     assert report["discrepancy"] is False and report["cause"] is None
     assert report["parameters"] == {} and report["gain"] == 0.0
     assert set(report) >= {"discrepancy", "cause", "parameters", "gain", "candidates", "base_error", "extended_error"}
