@@ -159,7 +159,9 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
     :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units): its
     error is then numerical more than statistical. None without a std, and none where the data
     may have been made by this model on its grid (``made_by_model``:
-    :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's.
+    :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's. A
+    refit stopped by its iteration budget moves a parameter by *at least* its move, as the
+    note says.
     ``refit`` names the command the note tells the user to rerun (``"fit"``, ``"rerun
     discover"``)."""
     if made_by_model:
@@ -178,8 +180,10 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
         over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
         over = [(k, move) for k, move in over if np.any(np.abs(move) > NUMERICS_NOTE_STDS * sd)]
         if over:
-            told = "; ".join(f"{what[k][0]} by {format_std(move)} "
-                             f"({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std)" for k, move in over)
+            told = "; ".join(f"{what[k][0]} by {'at least ' if check[k]['converged'] is False else ''}"
+                             f"{format_std(move)} ({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std"
+                             f"{'; its refit had not converged' if check[k]['converged'] is False else ''})"
+                             for k, move in over)
             notes.append(f"{n} would move {told} (a short refit; its std {format_std(sd)}): its error is numerical "
                          f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
                          "(docs/fitting.md, 'Numerical error of the parameters')")
