@@ -157,7 +157,8 @@ def format_std(v) -> str:
 def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool, refit: str = "fit") -> list[str]:
     """One note per name of ``names`` that :func:`parameter_moves`' ``check`` moves by more than
     :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units): its
-    error is then numerical more than statistical. None without a std, and none where the data
+    error is then numerical more than statistical (vector entries with a std of 0, held on a
+    bound, are not compared). None without a std, and none where the data
     may have been made by this model on its grid (``made_by_model``:
     :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's. A
     refit stopped by its iteration budget moves a parameter by *at least* its move, as the
@@ -177,14 +178,18 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
         if n not in std:
             continue
         sd = np.asarray(std[n], float)
+        scaled = sd > 0  # a std of 0: held on a bound (discover), no scale to compare a move with
+        if not np.any(scaled):
+            continue
         over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
-        over = [(k, move) for k, move in over if np.any(np.abs(move) > NUMERICS_NOTE_STDS * sd)]
+        over = [(k, move, np.max(np.abs(move)[scaled] / sd[scaled])) for k, move in over]
+        over = [(k, move, stds) for k, move, stds in over if stds > NUMERICS_NOTE_STDS]
         if over:
             told = "; ".join(f"{what[k][0]} by {'at least ' if check[k]['converged'] is False else ''}"
-                             f"{format_std(move)} ({float(np.max(np.abs(move) / np.maximum(sd, 1e-300))):.3g} std"
+                             f"{format_std(move)} ({float(stds):.3g} std"
                              f"{'; its refit had not converged' if check[k]['converged'] is False else ''})"
-                             for k, move in over)
+                             for k, move, stds in over)
             notes.append(f"{n} would move {told} (a short refit; its std {format_std(sd)}): its error is numerical "
-                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _ in over)} "
+                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _, _ in over)} "
                          "(docs/fitting.md, 'Numerical error of the parameters')")
     return notes

@@ -708,7 +708,8 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_a_refit_stopped_shor
     """:func:`jaxmpm.numerics.numerics_notes` on checks made by hand: a move beyond
     NUMERICS_NOTE_STDS std is named with its size in std, one within it or from a refit that
     could not start (None) is not, a refit stopped by its iteration budget moves the parameter
-    "by at least" its move, and a parameter without a std gets no note."""
+    "by at least" its move, and a parameter without a std, or with a std of 0 (held on a bound),
+    gets no note."""
     from jaxmpm.numerics import numerics_notes
 
     def check(dt, transfer, converged=True, substeps=20):
@@ -725,6 +726,12 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_a_refit_stopped_shor
     only_dt = numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu", "nu"], std, made_by_model=False)
     assert len(only_dt) == 1 and "at least" not in only_dt[0] and "blend" not in only_dt[0]
     assert numerics_notes(check({"mu": 0.15}, {"mu": -0.15}), ["mu"], std, made_by_model=False) == []
+    # a vector's entries are compared where their std is positive; one held on a bound (std 0) is not
+    pinned = {"g": np.array([0.0, 0.1])}
+    assert numerics_notes(check({"g": [5.0, 0.1]}, None, substeps=40), ["g"], pinned, made_by_model=False) == []
+    vector = numerics_notes(check({"g": [5.0, 0.5]}, None, substeps=40), ["g"], pinned, made_by_model=False)
+    assert len(vector) == 1 and "(5 std)" in vector[0]
+    assert numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu"], {"mu": 0.0}, made_by_model=False) == []
 
 
 @pytest.mark.slow
