@@ -818,10 +818,13 @@ def _plain(v):
 class Discovery:
     """The outcome of :func:`discover` (see :meth:`to_json` for ``report.json``).
 
-    With ``discover(numerics=True)``, ``numerics`` holds the base parameters' moves by name
-    (``{"dt": move, "transfer": move}``, physical units, as :attr:`jaxmpm.FitResult.numerics`),
-    ``numerics_check`` the refits' records (:func:`jaxmpm.numerics.parameter_moves`) and
-    ``notes`` a note for each parameter whose error is numerical more than statistical.
+    With ``discover(numerics=True)``, ``numerics`` holds the base fit's parameters' moves by
+    name (``{"dt": move, "transfer": move}``, physical units, as
+    :attr:`jaxmpm.FitResult.numerics`), ``extended_numerics`` those of the extended fit (base
+    and extension parameters; empty when nothing is selected), ``numerics_check`` the refits'
+    records by fit (``{"base": ..., "extended": ...}``, :func:`jaxmpm.numerics.parameter_moves`;
+    None where not run) and ``notes`` a note for each parameter whose error is numerical more
+    than statistical.
 
     ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
     dt/2 check, transfer check, numerics check, each step's screen and each refit): wall seconds; forward
@@ -852,7 +855,8 @@ class Discovery:
     not_applicable: dict
     timing: dict = field(default_factory=dict)
     numerics: dict = field(default_factory=dict)
-    numerics_check: dict | None = None
+    extended_numerics: dict = field(default_factory=dict)
+    numerics_check: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     # internals for the report
     problem: Any = field(default=None, repr=False)
@@ -903,8 +907,8 @@ class Discovery:
                     for c in self.candidates
                 ],
                 "convergence": self.convergence,
-                "numerics": {k: {c: None if v is None else _plain(v) for c, v in d.items()}
-                             for k, d in self.numerics.items()},
+                **{key: {k: {c: None if v is None else _plain(v) for c, v in d.items()} for k, d in moves.items()}
+                   for key, moves in (("numerics", self.numerics), ("extended_numerics", self.extended_numerics))},
                 "numerics_check": self.numerics_check,
                 "notes": list(self.notes),
                 "not_applicable": self.not_applicable,
@@ -1087,12 +1091,13 @@ def discover(
             change is the numerical error an improvement must exceed) and with the other
             transfer (:class:`Numerics`; its change is reported, and the verdict cautions
             against an extension whose improvement is within it: :func:`transfer_caution`).
-        numerics: the base fit's numerical error in parameter space: how far a short refit
-            at dt/2 and one with the other transfer move each base parameter
-            (:func:`jaxmpm.numerics.parameter_moves`, at most
-            :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each; the result's
-            ``numerics`` and ``numerics_check``), with a note for each parameter moved by more
-            than :data:`~jaxmpm.numerics.NUMERICS_NOTE_STDS` of its std (``notes``).
+        numerics: the fits' numerical error in parameter space: how far a short refit at
+            dt/2 and one with the other transfer move each parameter of the base fit and, when
+            an extension is selected, of the extended fit (:func:`jaxmpm.numerics.parameter_moves`,
+            at most :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each; the result's
+            ``numerics``, ``extended_numerics`` and ``numerics_check``), with a note for each
+            parameter moved by more than :data:`~jaxmpm.numerics.NUMERICS_NOTE_STDS` of its std
+            (``notes``).
         noise_floor: observation noise (RMS, in the data's units) if known: a base model whose
             held-out error is within 1.5 times it has nothing to explain.
         num_pixels: pixels per view and frame for silhouettes.
@@ -1186,19 +1191,24 @@ def discover(
                 f"({100 * conv['transfer_fraction']:.1f} % of the base error)")
 
     # ---- the base parameters' numerical error
-    moves, check, notes = {}, None, []
-    if numerics and problem.base_names():
-        say("numerics check: the base fit refitted at dt/2 and with the other transfer")
-        with phase("numerics check"):
-            check = _parameter_moves(problem, base, entry_train)
-        moves = move_table(check, problem.base_names())
+    made_by_model = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
+    checks, notes = {"base": None, "extended": None}, []
+
+    def numerics_check(model: str, fit: _Fit, stds: dict) -> dict:
+        """``model``'s (base, extended) fit refitted with other numerics: its parameters' moves."""
+        say(f"numerics check: the {model} fit refitted at dt/2 and with the other transfer")
+        with phase(f"numerics check ({model})"):
+            checks[model] = _parameter_moves(problem, fit, entry_train)
+        moves = move_table(checks[model], fit.free)
         for n, m in moves.items():
             say(f"  {n}: dt/2 move {_moved(m['dt'])}, transfer move {_moved(m['transfer'])} "
-                f"(std {format_std(base_std[n])})")
-        notes = numerics_notes(check, problem.base_names(), base_std, refit="rerun discover",
-                               made_by_model=all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs))
-        for note in notes:
-            say(f"  note: {note}")
+                f"(std {format_std(stds[n]) if n in stds else 'unknown'})")
+        for note in numerics_notes(checks[model], fit.free, stds, refit="rerun discover", made_by_model=made_by_model):
+            notes.append(f"{model} model: {note}")
+            say(f"  note: {notes[-1]}")
+        return moves
+
+    base_moves = numerics_check("base", base, base_std) if numerics and problem.base_names() else {}
 
     # ---- 3-4. screen, refit, select (greedy)
     current = base
@@ -1333,10 +1343,11 @@ def discover(
     discrepancy = bool(selected)
     values = problem.values(current.theta)
     parameters = {n: values[n] for e in selected for n in problem.ext_names(e)}
-    std = {}
+    std, stds = {}, {}
     if selected and ext_cov is not None:
         stds = _std_physical(problem, current.theta, current_names, ext_cov)
         std = {n: stds[n] for n in parameters}
+    extended_moves = numerics_check("extended", current, stds) if numerics and selected else {}
     gain = 1.0 - current_err / max(base_err, 1e-300) if discrepancy else 0.0
     if discrepancy:
         them = "it" if len(selected) == 1 else "them"
@@ -1386,8 +1397,9 @@ def discover(
         base_std=base_std,
         extended_values={n: values[n] for n in current_names},
         convergence=conv,
-        numerics=moves,
-        numerics_check=check,
+        numerics=base_moves,
+        extended_numerics=extended_moves,
+        numerics_check=checks,
         notes=notes,
         verdict=verdict,
         settings=settings,

@@ -612,12 +612,16 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
               f"| base model | {d.base_error:.4g} | {d.base_train_error:.4g} |",
               f"| extended ({' + '.join(d.causes)}) | {d.extended_error:.4g} | {d.extended_train_error:.4g} |",
               f"| **gain** (fraction of held-out error removed) | **{d.gain:.1%}** | |", ""]
-        L += ["Fitted extension parameters (± one standard deviation, frame-clustered):", "",
-              "| parameter | value |", "|---|---|"]
+        columns = numerics_columns(d.extended_numerics)
+        L += ["Fitted extension parameters (± one standard deviation, frame-clustered"
+              + ("; the moves: where a short refit of the extended model ends at dt/2 and with the other "
+                 "transfer, see \"The base model\" below" if columns else "") + "):", "",
+              "| parameter | value |" + "".join(f" {header} |" for _, header in columns), "|---|---|" + "---|" * len(columns)]
         for k, v in d.parameters.items():
             spec = d.problem.entry(k).spec
             unit = spec.unit if spec is not None and spec.unit != "-" else ""
-            L.append(f"| `{k}` | {_pm(v, d.std.get(k))} {unit} |")
+            L.append(f"| `{k}` | {_pm(v, d.std.get(k))} {unit} |"
+                     + "".join(f" {c} |" for c in numerics_cells(d.extended_numerics, k)))
         L.append("")
         for e in d.causes:
             L.append(f"* `{e}`: {X.EXTENSIONS[e].title} — acts in the {X.EXTENSIONS[e].acts_in}; "
@@ -643,20 +647,22 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
           "beside it and is not part of the rule).", ""]
     L += ["## The base model", ""]
     if d.base_values:
-        columns = numerics_columns(d)
+        columns = numerics_columns(d.numerics)
         L += ["| parameter | fitted value |" + "".join(f" {header} |" for _, header in columns),
               "|---|---|" + "---|" * len(columns)]
         for k, v in d.base_values.items():
-            L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |" + "".join(f" {c} |" for c in numerics_cells(d, k)))
-        if columns:
-            L += ["", "The moves are where a short refit of the base model (at most "
-                  f"{NUMERICS_REFIT_STEPS} iterations) ends at dt/2 and with the other transfer, less the fitted "
-                  "value: the parameters' numerical error, which the standard deviation does not include "
-                  "(docs/fitting.md, \"Numerical error of the parameters\")."]
-        if d.notes:
-            L += [""] + [f"* Note: {note}" for note in d.notes]
+            L.append(f"| `{k}` | {_pm(v, d.base_std.get(k))} |"
+                     + "".join(f" {c} |" for c in numerics_cells(d.numerics, k)))
     else:
         L.append("No parameter fitted: the base model is run as given.")
+    if d.numerics or d.extended_numerics:
+        L += ["", "The moves (here and in the verdict's table) are where a short refit of the base or the extended "
+              f"model (at most {NUMERICS_REFIT_STEPS} iterations) ends at dt/2 and with the other transfer, less the "
+              "fitted value: the parameters' numerical error, which the standard deviation does not include "
+              "(docs/fitting.md, \"Numerical error of the parameters\"; report.json: `details.numerics`, "
+              "`details.extended_numerics`)."]
+    if d.notes:
+        L += [""] + [f"* Note: {note}" for note in d.notes]
     L.append("")
     L += ["## What the base model gets wrong", ""]
     if "errors_over_time.png" in plots:

@@ -35,15 +35,15 @@ def aligned(rows: list[tuple[str, ...]], rule: bool = False) -> list[str]:
 NUMERICS_COLUMNS = (("dt", "dt/2 move"), ("transfer", "transfer move"))
 
 
-def numerics_columns(result) -> tuple[tuple[str, str], ...]:
-    """:data:`NUMERICS_COLUMNS` where the fit ``result`` ran the numerics check, else none."""
-    return NUMERICS_COLUMNS if result.numerics else ()
+def numerics_columns(moves: dict) -> tuple[tuple[str, str], ...]:
+    """:data:`NUMERICS_COLUMNS` where a numerics check gave ``moves`` (``{name: {"dt": move,
+    "transfer": move}}``: ``FitResult.numerics``, ``Discovery.numerics``), else none."""
+    return NUMERICS_COLUMNS if moves else ()
 
 
-def numerics_cells(result, name: str) -> tuple[str, ...]:
+def numerics_cells(moves: dict, name: str) -> tuple[str, ...]:
     """Parameter ``name``'s cells of :func:`numerics_columns`."""
-    moves = result.numerics.get(name, {})
-    return tuple(format_value(moves.get(key)) for key, _ in numerics_columns(result))
+    return tuple(format_value(moves.get(name, {}).get(key)) for key, _ in numerics_columns(moves))
 
 
 def format_table(result, truth: dict | None = None) -> str:
@@ -54,11 +54,11 @@ def format_table(result, truth: dict | None = None) -> str:
     with ``truth`` ({name: value}) also the truth and the error (``|dlog10|`` for log10-fitted
     parameters, else ``|d|`` in the parameter's unit).
     """
-    rows = [("parameter", "initial", "estimate", "std") + tuple(header for _, header in numerics_columns(result))
+    rows = [("parameter", "initial", "estimate", "std") + tuple(header for _, header in numerics_columns(result.numerics))
             + (("truth", "error") if truth else ())]
     for name, value in result.values.items():
         row = (name, format_value(result.initial.get(name)), format_value(value), format_value(result.std.get(name)))
-        row += numerics_cells(result, name)
+        row += numerics_cells(result.numerics, name)
         if truth:
             row += (format_value(truth[name]), _error_text(name, value, truth[name]))
         rows.append(row)

@@ -124,18 +124,19 @@ def test_the_transfer_check_finds_data_made_by_the_other_transfer(healthy_at_dt,
     assert "depends on the transfers: APIC in place of the FLIP blend 0.99" in result.verdict
     # the base parameters' numerical error: the refit with APIC (the data's transfer) moves E
     # most of the way to the truth (at dt/2: from the blend's refit at dt/2), by more than 2 std
-    check, E, std = result.numerics_check, result.base_values["E"], result.base_std["E"]
+    check, E, std = result.numerics_check["base"], result.base_values["E"], result.base_std["E"]
     assert check["dt"]["substeps"] == 40 and check["transfer"]["substeps"] == (20 if healthy_at_dt else 40)
     moved = result.numerics["E"]
     start = E if healthy_at_dt else E + moved["dt"]
     assert abs(start + moved["transfer"] - 3e3) < 0.5 * abs(E - 3e3), (E, moved)
     assert abs(moved["transfer"]) > 2 * std, (moved, std)
-    assert any(n.startswith("E would move") and "with APIC in place of the FLIP blend 0.99" in n for n in result.notes)
+    assert result.numerics_check["extended"] is None  # nothing selected
+    assert any(n.startswith("base model: E would move") and "with APIC in place of the FLIP blend 0.99" in n for n in result.notes)
     write_report(result, tmp_path)
     text = (tmp_path / "report.md").read_text()
     assert f"moves the held-out prediction by {c['transfer_error']:.3g}" in text
     assert ("both at dt/2" in text) != healthy_at_dt
-    assert "| parameter | fitted value | dt/2 move | transfer move |" in text and "* Note: E would move" in text
+    assert "| parameter | fitted value | dt/2 move | transfer move |" in text and "* Note: base model: E would move" in text
     details = json.loads((tmp_path / "report.json").read_text())["details"]
     assert details["convergence"]["flip_checked"] == 0.0
     assert details["numerics"]["E"]["transfer"] == pytest.approx(moved["transfer"])
@@ -166,16 +167,37 @@ def test_the_verdict_cautions_against_an_extension_within_the_transfer_check():
     assert transfer_caution({}, {"drag": 0.01}) is None
 
 
-def test_drag_is_found_and_the_cost_of_each_phase_is_accounted_for():
+def test_drag_is_found_and_the_cost_of_each_phase_is_accounted_for(tmp_path):
+    """The drag is found (with ``numerics=True``: the base and the extended fits' parameters
+    refitted at dt/2 and with the other transfer), and every phase's cost is accounted for."""
     D = importlib.import_module("jaxmpm.discover")
+    from jaxmpm.discover_report import write_report
+
     scene, obs = _hidden(THROW, "drag", {"linear": 0.8})
-    result = discover(scene.model, scene.params, obs, **FAST)
+    result = discover(scene.model, scene.params, obs, **FAST, numerics=True)
     _check(result, "drag", "drag.linear", 0.8, 0.1)
+    # the numerics checks: every parameter of either fit has its two moves; no note, since
+    # these are tracks of the model's own particles
+    assert set(result.numerics) == set(result.base_values) == {"E", "nu"}
+    assert set(result.extended_numerics) == {"E", "nu", "drag.linear", "drag.quadratic"}
+    for check in result.numerics_check.values():
+        assert check["dt"]["substeps"] == 40 and check["transfer"]["flip_checked"] == 0.99
+        assert all(0 <= check[k]["iterations"] <= D.NUMERICS_REFIT_STEPS for k in ("dt", "transfer"))
+    assert all(np.isfinite(v) for m in result.extended_numerics.values() for v in np.ravel(list(m.values())))
+    assert result.notes == []
+    write_report(result, tmp_path)
+    text = (tmp_path / "report.md").read_text()
+    assert "| parameter | value | dt/2 move | transfer move |" in text  # the verdict's extension table
+    assert "| parameter | fitted value | dt/2 move | transfer move |" in text  # the base model's
+    assert set(json.loads((tmp_path / "report.json").read_text())["details"]["extended_numerics"]) == set(
+        result.extended_numerics)
     # the timing block: the phases run, in order, each's rollouts inside its wall time
     t = result.timing
     phases = {r["phase"]: r for r in t["phases"]}
     refitted = [f"step 1: refit {c.id}" for c in result.candidates if c.refit]
-    assert list(phases) == ["setup", "base fit", "base uncertainty", "step 1: screen", *refitted]
+    assert list(phases) == ["setup", "base fit", "base uncertainty", "numerics check (base)", "step 1: screen",
+                            *refitted, "numerics check (extended)"]
+    assert all(phases[f"numerics check ({m})"]["fits"] == 2 for m in ("base", "extended"))  # dt/2, the blend
     assert sum(r["wall_s"] for r in t["phases"]) <= t["total_s"] <= result.seconds
     for r in t["phases"]:
         assert 0 <= r["rollout_s"] + r["jvp_s"] <= r["wall_s"] and 0 <= r["compile_s"] <= r["wall_s"], r

@@ -619,10 +619,10 @@ def write_report(path: Path, result, recon: Reconstruction, iou: np.ndarray, tim
     lines = [f"# identify: {material}", ""]
     for w in warnings or []:
         lines += [f"> **Warning**: {w}.", ""]
-    header = ("parameter", "estimate", "σ") + tuple(h for _, h in numerics_columns(result))
+    header = ("parameter", "estimate", "σ") + tuple(h for _, h in numerics_columns(result.numerics))
     lines += ["## Parameters", "", "| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for name, value in result.values.items():
-        cells = (name, format_value(value), format_value(result.std.get(name))) + numerics_cells(result, name)
+        cells = (name, format_value(value), format_value(result.std.get(name))) + numerics_cells(result.numerics, name)
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", f"{result.message}; {result.iterations} iterations, {result.seconds:.1f} s.", "",
               "## Silhouette IoU over time (observed vs simulated)", "",
