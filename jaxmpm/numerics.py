@@ -161,8 +161,9 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
     bound, are not compared). None without a std, and none where the data
     may have been made by this model on its grid (``made_by_model``:
     :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's. A
-    refit stopped by its iteration budget moves a parameter by *at least* its move, as the
-    note says.
+    move from a refit stopped by its iteration budget is a rough one, as the note says: it
+    can fall short of the converged refit's, or overshoot it where the loss has a valley
+    (docs/discover.md).
     ``refit`` names the command the note tells the user to rerun (``"fit"``, ``"rerun
     discover"``)."""
     if made_by_model:
@@ -185,10 +186,9 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
         over = [(k, move, np.max(np.abs(move)[scaled] / sd[scaled])) for k, move in over]
         over = [(k, move, stds) for k, move, stds in over if stds > NUMERICS_NOTE_STDS]
         if over:
-            told = "; ".join(f"{what[k][0]} by {'at least ' if check[k]['converged'] is False else ''}"
-                             f"{format_std(move)} ({float(stds):.3g} std"
-                             f"{'; its refit had not converged' if check[k]['converged'] is False else ''})"
-                             for k, move, stds in over)
+            rough = "; its refit had not converged, so the move is a rough one"
+            told = "; ".join(f"{what[k][0]} by {format_std(move)} ({float(stds):.3g} std"
+                             f"{rough if check[k]['converged'] is False else ''})" for k, move, stds in over)
             notes.append(f"{n} would move {told} (a short refit; its std {format_std(sd)}): its error is numerical "
                          f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _, _ in over)} "
                          "(docs/fitting.md, 'Numerical error of the parameters')")

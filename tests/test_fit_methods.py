@@ -704,12 +704,11 @@ def test_the_numerics_check_finds_the_refits_at_dt_half_and_with_the_blend():
     assert result.timing["numerics_s"] > 0
 
 
-def test_a_numerics_note_names_each_move_beyond_two_std_and_a_refit_stopped_short_as_a_lower_bound():
+def test_a_numerics_note_names_each_move_beyond_two_std_and_calls_an_unconverged_one_rough():
     """:func:`jaxmpm.numerics.numerics_notes` on checks made by hand: a move beyond
     NUMERICS_NOTE_STDS std is named with its size in std, one within it or from a refit that
-    could not start (None) is not, a refit stopped by its iteration budget moves the parameter
-    "by at least" its move, and a parameter without a std, or with a std of 0 (held on a bound),
-    gets no note."""
+    could not start (None) is not, a move from a refit stopped by its iteration budget is called
+    rough, and a parameter without a std, or with a std of 0 (held on a bound), gets no note."""
     from jaxmpm.numerics import numerics_notes
 
     def check(dt, transfer, converged=True, substeps=20):
@@ -721,10 +720,11 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_a_refit_stopped_shor
     notes = numerics_notes(check({"mu": 3.0, "kappa": 1.5}, {"mu": -0.3, "kappa": 0.5}, converged=False), ["mu", "kappa"],
                            std, made_by_model=False)
     assert len(notes) == 1 and notes[0].startswith("mu would move at dt/2 by 3 (30 std); with the FLIP blend 0.99 in "
-                                                   "place of APIC by at least -0.3 (3 std; its refit had not converged)")
+                                                   "place of APIC by -0.3 (3 std; its refit had not converged, so the "
+                                                   "move is a rough one)")
     assert "fit with more substeps per frame; fit with the scene key flip = 0.99 or at a finer dx" in notes[0]
     only_dt = numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu", "nu"], std, made_by_model=False)
-    assert len(only_dt) == 1 and "at least" not in only_dt[0] and "blend" not in only_dt[0]
+    assert len(only_dt) == 1 and "rough" not in only_dt[0] and "blend" not in only_dt[0]
     assert numerics_notes(check({"mu": 0.15}, {"mu": -0.15}), ["mu"], std, made_by_model=False) == []
     # a vector's entries are compared where their std is positive; one held on a bound (std 0) is not
     pinned = {"g": np.array([0.0, 0.1])}
