@@ -396,9 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-convergence", action="store_true",
                    help="skip the numerical checks (the fitted base model at dt/2 and with the other transfer)")
     p.add_argument("--numerics", action="store_true",
-                   help="also refit the base model at dt/2 and with the other transfer (a few iterations each, from "
-                        "its fit): how far each base parameter moves, its numerical error, which the std does not "
-                        "include")
+                   help="also refit the base and the extended model at dt/2 and with the other transfer (a few "
+                        "iterations each, from their fits): how far each parameter moves, its numerical error, which "
+                        "the std does not include")
     p.add_argument("--noise", type=float, default=None, help="known observation noise (RMS, data units)")
     p.add_argument("--pixels", type=int, default=256, help="pixels per view and frame for silhouettes")
     p.add_argument("--quiet", action="store_true", help="no progress output")
