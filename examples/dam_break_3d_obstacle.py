@@ -299,6 +299,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit", default="", help="base parameters to fit, comma-separated (default: none, the water's own "
                     "viscosity mu = 2e-3 Pa s in PAC-NeRF's convention; 'mu' fits it as part of the base model)")
     ap.add_argument("--top", type=int, default=2, help="best-scoring extensions refitted")
+    ap.add_argument("--numerics", action="store_true",
+                    help="how far a refit at dt/2 and one with the other transfer move the fitted parameters of the "
+                         "base and the extended model (docs/discover.md)")
     ap.add_argument("--substeps", type=int, default=None,
                     help="substeps per frame for discover (default: dt = 0.3 dx / 7u; at dx = 0.05 the free-slip "
                          "base model blows up at that dt and needs 88)")
@@ -355,7 +358,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     exts = None if args.extensions == "all" else args.extensions.split(",")
     result = discover(seq, names=[n for n in args.fit.split(",") if n], extensions=exts, holdout=0.3, top=args.top,
-                      max_extensions=1, max_iter=args.max_iter,
+                      max_extensions=1, max_iter=args.max_iter, numerics=args.numerics,
                       progress=lambda s: print(f"[{time.perf_counter() - start:7.1f}s] {s}", file=sys.stderr))
     note = (f"Measured water heights at the gauges H1-H4 (SPHERIC Test 2, MARIN; every 20th 1 kHz sample up to "
             f"{args.t_end} s). Base model: Newtonian water ("
