@@ -661,9 +661,8 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
     """The identification core's Levenberg–Marquardt, within the parameters' bounds, on the
     training residuals (held-out entries weigh 0; sequences held out entirely are not
     simulated) of the models with ``numerics``; all residuals are then evaluated once at the
-    estimate. An accepted step that
-    lowers the loss by less than ``max(_FTOL, STATISTIC_RESOLUTION / n)`` (relative; ``n``
-    training groups) ends it.
+    estimate. An accepted step that lowers the loss by less than ``max(_FTOL,
+    STATISTIC_RESOLUTION / n)`` (relative; ``n`` training groups) ends it.
 
     Raises:
         JaxmpmError: the loss is not finite at ``theta0`` (an unstable simulation).
@@ -827,11 +826,11 @@ class Discovery:
     than statistical.
 
     ``timing`` says where the time went, phase by phase (setup, base fit, base uncertainty,
-    dt/2 check, transfer check, numerics check, each step's screen and each refit): wall seconds; forward
-    rollouts and their seconds; forward-mode Jacobian rollouts, the tangents they carried and
-    their seconds; Levenberg–Marquardt runs, iterations and rejected trial steps; compilation
-    (estimated) and host seconds (:func:`jaxmpm.discover_report.format_timing` prints it as a
-    table).
+    dt/2 check, transfer check, the numerics checks, each step's screen and each refit): wall
+    seconds; forward rollouts and their seconds; forward-mode Jacobian rollouts, the tangents
+    they carried and their seconds; Levenberg–Marquardt runs, iterations and rejected trial
+    steps; compilation (estimated) and host seconds
+    (:func:`jaxmpm.discover_report.format_timing` prints it as a table).
     """
 
     discrepancy: bool
@@ -1190,7 +1189,8 @@ def discover(
             say(f"  transfer change{' at dt/2' if factor == 2 else ''}: {conv['transfer_error']:.3g} "
                 f"({100 * conv['transfer_fraction']:.1f} % of the base error)")
 
-    # ---- the base parameters' numerical error
+    # ---- the fits' numerical error in parameter space (numerics=True): the base fit's here,
+    # the extended fit's once the extensions are selected
     made_by_model = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
     checks, notes = {"base": None, "extended": None}, []
 

@@ -157,15 +157,14 @@ def format_std(v) -> str:
 def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool, refit: str = "fit") -> list[str]:
     """One note per name of ``names`` that :func:`parameter_moves`' ``check`` moves by more than
     :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units): its
-    error is then numerical more than statistical (vector entries with a std of 0, held on a
-    bound, are not compared). None without a std, and none where the data
-    may have been made by this model on its grid (``made_by_model``:
+    error is then numerical more than statistical. Entries with a std of 0 (held on a bound)
+    are not compared; there is no note without a std, and none where the data may have been
+    made by this model on its grid (``made_by_model``:
     :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's. A
-    move from a refit stopped by its iteration budget is a rough one, as the note says: it
-    can fall short of the converged refit's, or overshoot it where the loss has a valley
-    (docs/discover.md).
-    ``refit`` names the command the note tells the user to rerun (``"fit"``, ``"rerun
-    discover"``)."""
+    move from a refit stopped by its iteration budget is a rough one, as the note says: it can
+    fall short of the converged refit's, or overshoot it where the loss has a valley
+    (docs/discover.md). ``refit`` names the command the note tells the user to rerun
+    (``"fit"``, ``"rerun discover"``)."""
     if made_by_model:
         return []
     transfer = check["transfer"]
