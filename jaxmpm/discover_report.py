@@ -28,7 +28,7 @@ import numpy as np
 
 from . import extensions as X
 from .fit_report import aligned, numerics_cells, numerics_columns
-from .numerics import NUMERICS_REFIT_STEPS, transfer_name
+from .numerics import NUMERICS_NOTE_STDS, NUMERICS_REFIT_STEPS, transfer_name
 
 PHASES = ("free flight", "impact", "post-contact", "settling")
 
@@ -656,11 +656,13 @@ def _markdown(d, strata_all, plots, title, data_note) -> str:
     else:
         L.append("No parameter fitted: the base model is run as given.")
     if d.numerics or d.extended_numerics:
-        L += ["", "The moves (here and in the verdict's table) are where a short refit of the base or the extended "
-              f"model (at most {NUMERICS_REFIT_STEPS} iterations) ends at dt/2 and with the other transfer, less the "
-              "fitted value: the parameters' numerical error, which the standard deviation does not include "
+        where = {(True, True): " (here and in the verdict's table)", (False, True): " (in the verdict's table)"}
+        L += ["", f"The moves{where.get((bool(d.numerics), bool(d.extended_numerics)), '')} are where a short refit of "
+              f"the fitted model (at most {NUMERICS_REFIT_STEPS} iterations) ends at dt/2 and with the other transfer, "
+              "less the fitted value: the parameters' numerical error, which the standard deviation does not include "
               "(docs/fitting.md, \"Numerical error of the parameters\"; report.json: `details.numerics`, "
-              "`details.extended_numerics`)."]
+              f"`details.extended_numerics`). A note names a parameter moved by more than {NUMERICS_NOTE_STDS:g} "
+              "standard deviations, unless the data may have been made by this model on its grid."]
     if d.notes:
         L += [""] + [f"* Note: {note}" for note in d.notes]
     L.append("")
