@@ -462,13 +462,14 @@ class _Problem:
             self.costs.call(("rollout", i, numerics, active), seconds)
         return out
 
-    def health(self, theta) -> str | None:
-        """Why the first unhealthy sequence's rollout at ``theta`` is unhealthy
-        (:func:`jaxmpm.step.health_message`: the frame, the reason and a dt), or None."""
+    def health(self, theta, numerics: Numerics = Numerics()) -> str | None:
+        """Why the first unhealthy sequence's rollout at ``theta`` (with ``numerics``) is
+        unhealthy (:func:`jaxmpm.step.health_message`: the frame, the reason and a dt), or None."""
         active = self.active(theta)
         for i, sd in enumerate(self.seqs):
             p = self.unpack(jnp.asarray(theta, _F()), i, active)
-            why = health_message(sd.model, simulate(sd.model, p, checkpoint=None, frames=sd.frames))
+            model = numerics.apply(sd.model)
+            why = health_message(model, simulate(model, p, checkpoint=None, frames=sd.frames))
             if why is not None:
                 return f"sequence {sd.seq.name!r}: {why}" if len(self.seqs) > 1 else why
         return None
@@ -695,7 +696,7 @@ def _lm(problem: _Problem, theta0, free_names, train_entries, *, max_iter=25, pr
     r = problem.residuals(theta, numerics)
     loss = float(np.sum(np.where(w > 0, w * r, 0.0) ** 2))  # held-out entries may be NaN (an unstable forecast)
     if not np.isfinite(loss):
-        why = problem.health(theta) or "the residuals are NaN"
+        why = problem.health(theta, numerics) or "the residuals are NaN"
         raise JaxmpmError(f"the simulation is unstable at the starting parameters ({why}); "
                           "use more substeps or a better initial guess")
     if jac is not None:  # the solver's last Jacobian, if it was taken here (its residuals are these)
