@@ -665,8 +665,8 @@ def test_the_numerics_check_finds_the_refits_at_dt_half_and_with_the_blend():
     alone had moved it the wrong way at dt/2, -0.074 decades for +0.042.)"""
     import jax.numpy as jnp
 
-    from jaxmpm.numerics import NUMERICS_NOTE_STDS, numerics_notes
     from jaxmpm.identify.parameters import set_param
+    from jaxmpm.numerics import NUMERICS_NOTE_STDS, numerics_notes
 
     spec = block_spec(2, {"model": "newtonian", "mu": 20.0, "kappa": 1e4}, frames=6, substeps=20,
                       floor={"point": [0, 0.28], "normal": [0, 1], "contact": "slip"})
