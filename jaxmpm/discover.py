@@ -711,22 +711,28 @@ def _moved(v) -> str:
     return "none (unhealthy)" if v is None else format_std(v)
 
 
-def _parameter_moves(problem: _Problem, fit: _Fit, train_entries) -> dict:
+def _parameter_moves(problem: _Problem, fit: _Fit, train_entries, say: Callable[[str], None]) -> dict:
     """:func:`jaxmpm.numerics.parameter_moves` of ``fit``'s free parameters: the fit refitted
     from its estimate at dt/2 and with the other transfer, by at most
-    :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each."""
+    :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS` iterations each (each iteration's loss to
+    ``say``)."""
+    model = problem.seqs[0].model
+
     def by_name(theta) -> dict:
         return {n: np.asarray(theta[problem.slices[n]]).reshape(problem.entry(n).shape) for n in fit.free}
 
     def refit(numerics: Numerics) -> Refit | None:
+        what = " ".join(([f"with {transfer_name(other_flip(model.flip))}"] if numerics.other_transfer else [])
+                        + (["at dt/2"] if numerics.substeps_factor == 2 else []))
         try:
-            run = _lm(problem, fit.theta, fit.free, train_entries, max_iter=NUMERICS_REFIT_STEPS, numerics=numerics)
+            run = _lm(problem, fit.theta, fit.free, train_entries, max_iter=NUMERICS_REFIT_STEPS, numerics=numerics,
+                      progress=lambda i, loss: say(f"  refit {what}, iteration {i}: training loss {loss:.4e}"))
         except JaxmpmError:  # unhealthy at the estimate with these numerics
+            say(f"  refit {what}: unhealthy at the fitted point")
             return None
         return Refit(y=by_name(run.theta), losses=(float(run.history[0]), float(min(run.history))),
                      iterations=run.iterations, converged=run.converged)
 
-    model = problem.seqs[0].model
     return parameter_moves(refit, by_name(fit.theta), lambda n, y: np.asarray(problem.physical(n, jnp.asarray(y, _F()))),
                            substeps=model.substeps, flip=model.flip)
 
@@ -1199,7 +1205,7 @@ def discover(
         """``model``'s (base, extended) fit refitted with other numerics: its parameters' moves."""
         say(f"numerics check: the {model} fit refitted at dt/2 and with the other transfer")
         with phase(f"numerics check ({model})"):
-            checks[model] = _parameter_moves(problem, fit, entry_train)
+            checks[model] = _parameter_moves(problem, fit, entry_train, say)
         moves = move_table(checks[model], fit.free)
         for n, m in moves.items():
             say(f"  {n}: dt/2 move {_moved(m['dt'])}, transfer move {_moved(m['transfer'])} "
