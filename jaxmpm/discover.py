@@ -722,8 +722,7 @@ def _parameter_moves(problem: _Problem, fit: _Fit, train_entries, say: Callable[
         return {n: np.asarray(theta[problem.slices[n]]).reshape(problem.entry(n).shape) for n in fit.free}
 
     def refit(numerics: Numerics) -> Refit | None:
-        what = " ".join(([f"with {transfer_name(other_flip(model.flip))}"] if numerics.other_transfer else [])
-                        + (["at dt/2"] if numerics.substeps_factor == 2 else []))
+        what = numerics.describe(model.flip)
         try:
             run = _lm(problem, fit.theta, fit.free, train_entries, max_iter=NUMERICS_REFIT_STEPS, numerics=numerics,
                       progress=lambda i, loss: say(f"  refit {what}, iteration {i}: training loss {loss:.4e}"))

@@ -765,7 +765,7 @@ def fit(
             check = record["numerics"] = numerics_check(
                 stage_residuals, lambda other, until=stage.until: build_objective(other, observation, until=until,
                                                                                  **objective_options),
-                {n: y_all[n] for n in snames}, rtol=c.rtol, atol=c.atol)
+                {n: y_all[n] for n in snames}, rtol=c.rtol, atol=c.atol, say=say)
             numerics.update(move_table(check, final_names))
             moved = numerics_notes(check, final_names, std, made_by_model=observation.made_by(model))
             for note in moved:
@@ -1137,7 +1137,7 @@ def _stage_std(objective: Objective, residuals: StageResiduals, y: dict, jacobia
 
 
 def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], Objective], y: dict, *,
-                   rtol: float, atol: float) -> dict:
+                   rtol: float, atol: float, say: Callable[[str], None] = lambda line: None) -> dict:
     """How the fitted variables ``y`` of one stage depend on the numerics
     (:func:`jaxmpm.numerics.parameter_moves`): the stage refitted from ``y`` with dt halved and
     with the other transfer, each by at most :data:`~jaxmpm.numerics.NUMERICS_REFIT_STEPS`
@@ -1148,6 +1148,7 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
         objective_for: ``objective_for(model)``, the stage's objective for a model with other
             numerics (same observation, frames and options).
         y: the fitted variables (optimisation space) by name.
+        say: gets one line per refit (its iterations and losses).
 
     Returns:
         :func:`~jaxmpm.numerics.parameter_moves`' ``{"dt": check, "transfer": check}``.
@@ -1158,7 +1159,10 @@ def numerics_check(residuals: StageResiduals, objective_for: Callable[[Model], O
         other = StageResiduals(objective_for(numerics.apply(model)).program, residuals.base, residuals.names)
         run = levenberg_marquardt(other, y, max_steps=NUMERICS_REFIT_STEPS, rtol=rtol, atol=atol, warm=True)
         if run.unhealthy_start:
+            say(f"  refit {numerics.describe(model.flip)}: unhealthy at the fitted point")
             return None
+        say(f"  refit {numerics.describe(model.flip)}: {run.iterations} iterations, loss {float(run.losses[0]):.4e} -> "
+            f"{float(min(run.losses)):.4e}{'' if run.converged else ' (not converged)'}")
         return Refit(y=run.y, losses=(float(run.losses[0]), float(min(run.losses))), iterations=run.iterations,
                      converged=bool(run.converged))
 

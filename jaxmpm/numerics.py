@@ -40,6 +40,12 @@ class Numerics:
     substeps_factor: int = 1
     other_transfer: bool = False
 
+    def describe(self, flip: float) -> str:
+        """These numerics for a model of blend ``flip``, in words: e.g. ``"at dt/2"``, ``"with
+        APIC at dt/2"`` (empty for the default)."""
+        return " ".join(([f"with {transfer_name(other_flip(flip))}"] if self.other_transfer else [])
+                        + ([f"at dt/{self.substeps_factor}"] if self.substeps_factor != 1 else []))
+
     def apply(self, model: Model) -> Model:
         if self.substeps_factor != 1:
             model = model.with_substeps(model.substeps * self.substeps_factor)

@@ -709,7 +709,12 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_calls_an_unconverged
     NUMERICS_NOTE_STDS std is named with its size in std, one within it or from a refit that
     could not start (None) is not, a move from a refit stopped by its iteration budget is called
     rough, and a parameter without a std, or with a std of 0 (held on a bound), gets no note."""
-    from jaxmpm.numerics import numerics_notes
+    from jaxmpm.numerics import Numerics, numerics_notes
+
+    # the refits' numerics in words (the progress lines)
+    assert Numerics(substeps_factor=2).describe(0.0) == "at dt/2"
+    assert Numerics(substeps_factor=2, other_transfer=True).describe(0.0) == "with the FLIP blend 0.99 at dt/2"
+    assert Numerics(other_transfer=True).describe(0.99) == "with APIC" and Numerics().describe(0.0) == ""
 
     def check(dt, transfer, converged=True, substeps=20):
         return {"dt": {"substeps": 40, "converged": True, "shift": dt},
