@@ -1164,6 +1164,7 @@ def discover(
     say(f"base model: training error {base_train_err:.4g}, held-out error {base_err:.4g}")
 
     # ---- 2. convergence check (numerical error)
+    made_by_model = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)  # on its own grid
     conv = {}
     numerical = 0.0
     if convergence:
@@ -1190,14 +1191,13 @@ def discover(
             if unhealthy:
                 say(f"  the rollout with the other transfer is unhealthy at {at}")
         conv.update(_transfer_check(problem, r_same, r_other, rows, base_err, flip, factor))
-        conv["data_made_by_model"] = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
+        conv["data_made_by_model"] = made_by_model
         if conv["transfer_error"] is not None:
             say(f"  transfer change{' at dt/2' if factor == 2 else ''}: {conv['transfer_error']:.3g} "
                 f"({100 * conv['transfer_fraction']:.1f} % of the base error)")
 
     # ---- the fits' numerical error in parameter space (numerics=True): the base fit's here,
     # the extended fit's once the extensions are selected
-    made_by_model = all(sd.seq.observation.made_by(sd.model) for sd in problem.seqs)
     checks, notes = {"base": None, "extended": None}, []
 
     def numerics_check(model: str, fit: _Fit, stds: dict) -> dict:
