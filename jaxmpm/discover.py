@@ -1207,8 +1207,9 @@ def discover(
             checks[model] = _parameter_moves(problem, fit, entry_train, say)
         moves = move_table(checks[model], fit.free)
         for n, m in moves.items():
-            say(f"  {n}: dt/2 move {_moved(m['dt'])}, transfer move {_moved(m['transfer'])} "
-                f"(std {format_std(stds[n]) if n in stds else 'unknown'})")
+            sd = ("unknown" if n not in stds else "0: held on its bound" if not np.any(np.asarray(stds[n]) > 0)
+                  else format_std(stds[n]))
+            say(f"  {n}: dt/2 move {_moved(m['dt'])}, transfer move {_moved(m['transfer'])} (std {sd})")
         for note in numerics_notes(checks[model], fit.free, stds, refit="rerun discover", made_by_model=made_by_model):
             notes.append(f"{model} model: {note}")
             say(f"  note: {notes[-1]}")
