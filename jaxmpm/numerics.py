@@ -17,7 +17,7 @@ import numpy as np
 
 from .model import Model
 
-__all__ = ["CHECK_FLIP", "NUMERICS_NOTE_STDS", "NUMERICS_REFIT_STEPS", "Numerics", "Refit", "format_std", "move_table",
+__all__ = ["CHECK_FLIP", "NUMERICS_BOUND_MOVE", "NUMERICS_NOTE_STDS", "NUMERICS_REFIT_STEPS", "Numerics", "Refit", "format_std", "move_table",
            "numerics_notes", "other_flip", "parameter_moves", "transfer_name", "transfer_runs"]
 
 Run = TypeVar("Run")
@@ -86,6 +86,11 @@ NUMERICS_REFIT_STEPS = 4
 #: :func:`numerics_notes` names a parameter that a numerics check moves by more than this many
 #: of its standard deviations.
 NUMERICS_NOTE_STDS = 2.0
+
+#: ... and one held on a bound (a std of 0, in ``discover``) that it moves off the bound by more
+#: than this, in optimisation units: Levenberg–Marquardt's step tolerance ``max(rtol, 1e-3) (1 +
+#: |y|)`` at ``y = 0``, below which a refit resolves no move.
+NUMERICS_BOUND_MOVE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -163,8 +168,9 @@ def format_std(v) -> str:
 def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_model: bool, refit: str = "fit") -> list[str]:
     """One note per name of ``names`` that :func:`parameter_moves`' ``check`` moves by more than
     :data:`NUMERICS_NOTE_STDS` of its standard deviation ``std[name]`` (physical units): its
-    error is then numerical more than statistical. Entries with a std of 0 (held on a bound)
-    are not compared; there is no note without a std, and none where the data may have been
+    error is then numerical more than statistical. An entry with a std of 0 (held on a bound)
+    is named when a refit moves it off the bound by more than :data:`NUMERICS_BOUND_MOVE`
+    (optimisation units). There is no note without a std, and none where the data may have been
     made by this model on its grid (``made_by_model``:
     :meth:`jaxmpm.observe.Observation.made_by`), whose discretisation is then the data's. A
     move from a refit stopped by its iteration budget is a rough one, as the note says: it can
@@ -179,22 +185,28 @@ def numerics_notes(check: dict, names: Sequence[str], std: dict, *, made_by_mode
                          + (" (both at dt/2)" if transfer["substeps"] == check["dt"]["substeps"] else ""),
                          f"{refit} with the scene key flip = {CHECK_FLIP:g} or at a finer dx" if transfer["flip"] == 0.0
                          else f"{refit} at a finer dx")}
+    rough = "its refit had not converged, so the move is a rough one"
     notes = []
     for n in names:
         if n not in std:
             continue
         sd = np.asarray(std[n], float)
-        scaled = sd > 0  # a std of 0: held on a bound (discover), no scale to compare a move with
-        if not np.any(scaled):
-            continue
-        over = [(k, np.asarray(check[k]["shift"][n], float)) for k in what if check[k]["shift"] is not None]
-        over = [(k, move, np.max(np.abs(move)[scaled] / sd[scaled])) for k, move in over]
-        over = [(k, move, stds) for k, move, stds in over if stds > NUMERICS_NOTE_STDS]
-        if over:
-            rough = "; its refit had not converged, so the move is a rough one"
-            told = "; ".join(f"{what[k][0]} by {format_std(move)} ({float(stds):.3g} std"
-                             f"{rough if check[k]['converged'] is False else ''})" for k, move, stds in over)
-            notes.append(f"{n} would move {told} (a short refit; its std {format_std(sd)}): its error is numerical "
-                         f"more than statistical; to see where it converges, {'; '.join(what[k][1] for k, _, _ in over)} "
+        # a std of 0: held on a bound (discover); a move off it is compared with the solver's resolution
+        scaled, pinned = sd > 0, sd == 0
+        told, fixes = [], []
+        for k in what:
+            if check[k]["shift"] is None:
+                continue
+            move = np.asarray(check[k]["shift"][n], float)
+            stds = float(np.max(np.abs(move)[scaled] / sd[scaled])) if np.any(scaled) else 0.0
+            off = bool(np.any(np.abs(np.asarray(check[k]["shift_y"][n], float))[pinned] > NUMERICS_BOUND_MOVE))
+            if stds > NUMERICS_NOTE_STDS or off:
+                why = ([f"{stds:.3g} std"] if stds > NUMERICS_NOTE_STDS else []) + (
+                    ["off the bound the fit holds it on"] if off else []) + ([rough] if check[k]["converged"] is False else [])
+                told.append(f"{what[k][0]} by {format_std(move)} ({'; '.join(why)})")
+                fixes.append(what[k][1])
+        if told:
+            notes.append(f"{n} would move {'; '.join(told)} (a short refit; its std {format_std(sd)}): its error is "
+                         f"numerical more than statistical; to see where it converges, {'; '.join(fixes)} "
                          "(docs/fitting.md, 'Numerical error of the parameters')")
     return notes

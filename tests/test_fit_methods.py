@@ -708,7 +708,8 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_calls_an_unconverged
     """:func:`jaxmpm.numerics.numerics_notes` on checks made by hand: a move beyond
     NUMERICS_NOTE_STDS std is named with its size in std, one within it or from a refit that
     could not start (None) is not, a move from a refit stopped by its iteration budget is called
-    rough, and a parameter without a std, or with a std of 0 (held on a bound), gets no note."""
+    rough, an entry held on a bound (std 0) is named when a refit moves it off the bound, and a
+    parameter without a std (or a NaN one) gets no note."""
     from jaxmpm.numerics import Numerics, numerics_notes
 
     # the refits' numerics in words (the progress lines)
@@ -716,10 +717,10 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_calls_an_unconverged
     assert Numerics(substeps_factor=2, other_transfer=True).describe(0.0) == "with the FLIP blend 0.99 at dt/2"
     assert Numerics(other_transfer=True).describe(0.99) == "with APIC" and Numerics().describe(0.0) == ""
 
-    def check(dt, transfer, converged=True, substeps=20):
-        return {"dt": {"substeps": 40, "converged": True, "shift": dt},
+    def check(dt, transfer, converged=True, substeps=20):  # linear parameters: shift_y is the shift
+        return {"dt": {"substeps": 40, "converged": True, "shift": dt, "shift_y": dt},
                 "transfer": {"substeps": substeps, "flip": 0.0, "flip_checked": 0.99, "converged": converged,
-                             "shift": transfer}}
+                             "shift": transfer, "shift_y": transfer}}
 
     std = {"mu": 0.1, "kappa": 1.0}
     notes = numerics_notes(check({"mu": 3.0, "kappa": 1.5}, {"mu": -0.3, "kappa": 0.5}, converged=False), ["mu", "kappa"],
@@ -731,12 +732,16 @@ def test_a_numerics_note_names_each_move_beyond_two_std_and_calls_an_unconverged
     only_dt = numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu", "nu"], std, made_by_model=False)
     assert len(only_dt) == 1 and "rough" not in only_dt[0] and "blend" not in only_dt[0]
     assert numerics_notes(check({"mu": 0.15}, {"mu": -0.15}), ["mu"], std, made_by_model=False) == []
-    # a vector's entries are compared where their std is positive; one held on a bound (std 0) is not
+    # a vector's entries are compared in std where their std is positive; one held on a bound (std
+    # 0) is named when a refit moves it off the bound by more than NUMERICS_BOUND_MOVE
     pinned = {"g": np.array([0.0, 0.1])}
-    assert numerics_notes(check({"g": [5.0, 0.1]}, None, substeps=40), ["g"], pinned, made_by_model=False) == []
-    vector = numerics_notes(check({"g": [5.0, 0.5]}, None, substeps=40), ["g"], pinned, made_by_model=False)
+    assert numerics_notes(check({"g": [1e-5, 0.1]}, None, substeps=40), ["g"], pinned, made_by_model=False) == []
+    vector = numerics_notes(check({"g": [1e-5, 0.5]}, None, substeps=40), ["g"], pinned, made_by_model=False)
     assert len(vector) == 1 and "(5 std)" in vector[0]
-    assert numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu"], {"mu": 0.0}, made_by_model=False) == []
+    off = numerics_notes(check({"g": [0.1, 0.0]}, None, substeps=40), ["g"], pinned, made_by_model=False)
+    assert len(off) == 1 and off[0].startswith("g would move at dt/2 by [0.1 0. ] (off the bound the fit holds it on)")
+    assert numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu"], {"mu": 0.0}, made_by_model=False) != []
+    assert numerics_notes(check({"mu": 3.0}, None, substeps=40), ["mu"], {"mu": np.nan}, made_by_model=False) == []
 
 
 @pytest.mark.slow
